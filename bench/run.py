@@ -1,0 +1,81 @@
+"""``make bench``: each stage's time (median of several runs) beside its target and the paper's figure.
+
+Run as a script; prints one table. Targets are for a 2-core machine. Sections whose modules are not
+there yet are skipped with a note.
+"""
+
+from __future__ import annotations
+
+import importlib
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pybullet_data
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from stages import analyze  # noqa: E402
+
+RUNS = 5
+ROWS: list[tuple[str, str, str, str]] = []
+
+
+def row(what: str, measured: str, target: str = "", paper: str = "") -> None:
+    ROWS.append((what, measured, target, paper))
+
+
+def bench_analysis() -> None:
+    """Table 1: segments, sampling, refine + pairs, total; the toy piano and the scaled bunny."""
+    piano = analyze.load_mesh(REPO / "data" / "objects" / "toy_piano.obj")
+    bunny = analyze.load_mesh(Path(pybullet_data.getDataPath()) / "bunny.obj")
+    bunny.apply_scale(0.45 / bunny.extents.max())
+    params = analyze.Params()
+    for name, mesh, target in (("toy piano", piano, 0.15), ("bunny 0.45 m", bunny, 0.25)):
+        runs = [analyze.compute(mesh, 3.1, params) for _ in range(RUNS)]
+        med = {k: statistics.median(r.timings[k] for r in runs) for k in runs[0].timings}
+        c = runs[0].summary["counts"]
+        row(f"analyze {name}: segments", f"{med['segments']:.3f} s ({c['facets']} facets)", "",
+            "0.354 s (262 faces)")
+        row(f"analyze {name}: sampling", f"{med['sampling']:.3f} s ({c['contacts']} contacts)", "",
+            "0.075 s (388 points)")
+        row(f"analyze {name}: refine + pairs", f"{med['pairs']:.3f} s ({c['pairs']} pairs)", "",
+            "2.115 s (107 pairs)")
+        ok = "ok" if med["total"] <= target else "MISSED"
+        row(f"analyze {name}: total (+hull)", f"{med['total']:.3f} s", f"<= {target} s {ok}", "2.544 s")
+
+
+def bench_module(module: str, fn: str, label: str) -> None:
+    """Run ``bench.<module>.<fn>()`` (written beside its stage) and print what it returns."""
+    try:
+        mod = importlib.import_module(f"bench.{module}")
+    except ModuleNotFoundError as e:
+        row(label, f"skipped ({e.name} not there yet)")
+        return
+    for what, measured, target, paper in getattr(mod, fn)():
+        row(what, measured, target, paper)
+
+
+def main() -> None:
+    t0 = time.perf_counter()
+    bench_analysis()
+    for module, fn, label in (("bench_robot", "rows", "robot IK"), ("bench_stability", "rows", "stability"),
+                              ("bench_mpc", "rows", "MPC")):
+        bench_module(module, fn, label)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    row("peak memory (whole bench process)", f"{peak:.0f} MB", "<= 1024 MB per stage")
+    widths = [max(len(r[i]) for r in ROWS + [("what", "measured", "target", "paper")]) for i in range(4)]
+    line = "  ".join(h.ljust(w) for h, w in zip(("what", "measured", "target", "paper"), widths, strict=True))
+    print(line)
+    print("-" * len(line))
+    for r in ROWS:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)))
+    print(f"\n(median of {RUNS} runs where timed; numpy {np.__version__}; {time.perf_counter() - t0:.1f} s in all)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""The ``pivot`` command line: thin typer commands over ``stages``."""

@@ -1,0 +1,621 @@
+"""Object analysis (§4.1, Fig. 4, Table 1): hull, superimposed segments, placements, contacts, pairs.
+
+Works on one watertight triangle mesh in its own frame ``O`` (metres). Outputs, all in ``O``:
+
+- **hull** (§4.1): the convex hull's corner vertices (pivot candidates: incident to three or more
+  non-coplanar hull faces) and its edges between two non-coplanar hull faces (tumble axes), with the
+  angle between the two faces' normals (how far a tumble about that edge turns the object).
+- **segments** (§4.1, superimposed segments [4]): region growing from seed triangles taken in order
+  of decreasing area; a triangle joins the seed's facet when it is connected to the seed through
+  triangles whose normals are all within ``segment_angle_deg`` of the *seed's* normal. A new seed is
+  any triangle no facet covers yet, but growth ignores coverage, so facets overlap.
+- **placements**: the faces of the hull with coplanar triangles merged. Each rests the object on the
+  table with the resting transform ``X_TO`` (face normal onto −z, face on z = 0, CoM projection at the
+  origin); it is SP when the CoM's vertical projection lies inside the support polygon by at least
+  ``sp_margin`` (signed distance to the polygon boundary, recorded as ``margin``).
+- **contacts** (§4.1): points sampled uniformly by area over the whole surface and thinned to a
+  minimum spacing, then distributed onto every facet (large enough to touch) that holds their
+  triangle, and dropped when nearer than ``boundary_margin`` to the facet's boundary or when a ball
+  of ``ball_radius`` touching there would intersect the object elsewhere (python-fcl).
+- **pairs** (§4.2): two contacts on facets whose normals are opposite within ``pair_angle_deg``, the
+  line between them within that angle of both inward normals (an antipodal squeeze), the segment
+  between them inside the object. Each contact keeps its best partner; pairs are unordered.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import fcl
+import numpy as np
+import scipy.sparse as sp
+import trimesh
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from stages import artifacts, se3, tol
+from stages.artifacts import Field
+from stages.errors import InputError
+
+MESH_SUFFIXES = {".obj", ".stl", ".ply", ".off", ".glb", ".gltf"}
+MAX_EXTENT = 5.0  # m: beyond this the mesh is surely in mm or cm
+MIN_EXTENT = 0.01  # m
+
+
+@dataclass(frozen=True)
+class Params:
+    """Analysis parameters (lengths in m, angles in degrees as the option names say)."""
+
+    #: Region growing joins triangles whose normal is within this angle of the seed's (§4.1).
+    segment_angle_deg: float = 20.0
+    #: Facets smaller than this (m^2) carry no contact points: a 4 cm ball needs room.
+    min_facet_area: float = 1e-3
+    #: Minimum distance between sampled contact points (m).
+    sample_spacing: float = 0.035
+    #: Raw area-uniform samples per m^2 before thinning to ``sample_spacing``.
+    sample_density: float = 6000.0
+    #: Contacts nearer than this to their facet's boundary are dropped (m).
+    boundary_margin: float = 0.01
+    #: Radius of the ball end-effector (m); the paper's ball is 4 cm across.
+    ball_radius: float = 0.02
+    #: Paired facets' normals must be opposite within this angle; the squeeze line within it too.
+    pair_angle_deg: float = 15.0
+    #: A placement is SP when the CoM projection is at least this far inside its support polygon (m).
+    sp_margin: float = 0.005
+    #: Hull faces whose normals differ by less than this angle merge into one placement face.
+    hull_coplanar_deg: float = 0.5
+    #: Seed of the sampling generator.
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Everything ``compute`` finds; struct-of-arrays tables keyed by column name (frame O)."""
+
+    hull: dict
+    segments: dict
+    placements: dict
+    contacts: dict
+    pairs: dict
+    summary: dict
+    timings: dict
+
+
+# --------------------------------------------------------------------------------------------- mesh
+def load_mesh(path: str | Path, scale: float = 1.0) -> trimesh.Trimesh:
+    """Load a mesh file as one watertight, outward-facing triangle mesh in metres.
+
+    Raises ``InputError`` (one line naming the file) for a missing, unreadable, empty, NaN-bearing,
+    wrongly scaled, unrepairable or zero-volume mesh.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such mesh file")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"{path}: unsupported mesh format '{path.suffix}' (use OBJ, STL, PLY, OFF or GLB)")
+    if not np.isfinite(scale) or scale <= 0:
+        raise InputError(f"{path}: --scale must be a positive number (got {scale})")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types for bad files
+        raise InputError(f"{path}: cannot read mesh ({type(e).__name__}: {str(e).splitlines()[0][:120]})") from e
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        raise InputError(f"{path}: mesh is empty (no triangles)")
+    vertices = np.asarray(loaded.vertices, dtype=float)
+    if not np.isfinite(vertices).all():
+        raise InputError(f"{path}: mesh has NaN or infinite vertex coordinates")
+    mesh = trimesh.Trimesh(vertices * scale, np.asarray(loaded.faces), process=True, validate=True)
+    if len(mesh.faces) == 0:
+        raise InputError(f"{path}: mesh has no non-degenerate triangles")
+    extent = float(mesh.extents.max())
+    if extent > MAX_EXTENT or extent < MIN_EXTENT:
+        raise InputError(
+            f"{path}: largest extent is {extent:g} m, outside [{MIN_EXTENT}, {MAX_EXTENT}] m; the mesh is "
+            f"taken in metres: pass --scale (e.g. --scale 0.001 for millimetres)"
+        )
+    if not mesh.is_watertight:
+        trimesh.repair.fill_holes(mesh)
+        if not mesh.is_watertight:
+            open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+            raise InputError(f"{path}: mesh is not watertight ({open_edges} open edges) and cannot be repaired")
+    if not mesh.is_winding_consistent:
+        trimesh.repair.fix_winding(mesh)
+    if abs(mesh.volume) < tol.zero * 1e3 or not np.isfinite(mesh.volume):
+        raise InputError(f"{path}: mesh encloses zero volume")
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def mass_properties(mesh: trimesh.Trimesh, mass: float) -> dict:
+    """CoM ``p_OCm (3,)`` and inertia about the CoM ``I_Cm (3, 3)`` (kg m^2) for uniform density."""
+    density = mass / mesh.volume
+    props = trimesh.triangles.mass_properties(mesh.triangles, density=density)
+    return {"com": np.asarray(props.center_mass), "inertia": np.asarray(props.inertia), "volume": mesh.volume}
+
+
+# --------------------------------------------------------------------------------------------- hull
+def analyze_hull(mesh: trimesh.Trimesh, com: np.ndarray, params: Params) -> tuple[dict, dict]:
+    """Hull vertices/edges (pivot and tumble candidates) and placements, frame O.
+
+    Returns ``(hull, placements)`` column dicts.
+    """
+    hull = mesh.convex_hull
+    V, F = np.asarray(hull.vertices), np.asarray(hull.faces)
+    N = np.asarray(hull.face_normals)
+    adj = np.asarray(hull.face_adjacency)
+    # Merge coplanar adjacent hull triangles into faces (placement faces).
+    cos_tol = np.cos(np.radians(params.hull_coplanar_deg))
+    same = np.einsum("ij,ij->i", N[adj[:, 0]], N[adj[:, 1]]) > cos_tol
+    graph = sp.coo_matrix((np.ones(same.sum()), (adj[same, 0], adj[same, 1])), shape=(len(F), len(F)))
+    _, group = connected_components(graph, directed=False)
+    group = _renumber_by_first(group)
+    n_groups = group.max() + 1
+    areas = hull.area_faces
+    g_area = np.bincount(group, weights=areas, minlength=n_groups)
+    g_normal = np.zeros((n_groups, 3))
+    np.add.at(g_normal, group, N * areas[:, None])
+    g_normal /= np.linalg.norm(g_normal, axis=1, keepdims=True)
+
+    # Corner vertices: incident to >= 3 distinct merged faces.
+    vg = np.unique(np.stack([F.ravel(), np.repeat(group, 3)], axis=1), axis=0)
+    corner = np.bincount(vg[:, 0], minlength=len(V)) >= 3
+    # Edges between two distinct merged faces.
+    edge_mask = group[adj[:, 0]] != group[adj[:, 1]]
+    e_verts = np.sort(np.asarray(hull.face_adjacency_edges)[edge_mask], axis=1)
+    e_faces = np.stack([group[adj[edge_mask, 0]], group[adj[edge_mask, 1]]], axis=1)
+    e_angle = np.arccos(np.clip(np.einsum("ij,ij->i", g_normal[e_faces[:, 0]], g_normal[e_faces[:, 1]]), -1, 1))
+    order = np.lexsort((e_verts[:, 1], e_verts[:, 0]))
+    e_verts, e_faces, e_angle = e_verts[order], np.sort(e_faces[order], axis=1), e_angle[order]
+    # Hull vertex ids are renumbered to the corner list; edges keep only corner endpoints' ids.
+    corner_ids = np.flatnonzero(corner)
+    remap = -np.ones(len(V), dtype=np.int64)
+    remap[corner_ids] = np.arange(len(corner_ids))
+    n_v, n_e = len(corner_ids), len(e_verts)
+    pv = V[corner_ids]
+    ea, eb = V[e_verts[:, 0]], V[e_verts[:, 1]]
+    hull_cols = {
+        "hull_id": np.arange(n_v + n_e),
+        "kind": np.array(["vertex"] * n_v + ["edge"] * n_e),
+        "v0": np.concatenate([np.arange(n_v), remap[e_verts[:, 0]]]),
+        "v1": np.concatenate([-np.ones(n_v, dtype=np.int64), remap[e_verts[:, 1]]]),
+        "x0": np.concatenate([pv[:, 0], ea[:, 0]]),
+        "y0": np.concatenate([pv[:, 1], ea[:, 1]]),
+        "z0": np.concatenate([pv[:, 2], ea[:, 2]]),
+        "x1": np.concatenate([pv[:, 0], eb[:, 0]]),
+        "y1": np.concatenate([pv[:, 1], eb[:, 1]]),
+        "z1": np.concatenate([pv[:, 2], eb[:, 2]]),
+        "face_a": np.concatenate([-np.ones(n_v, dtype=np.int64), e_faces[:, 0]]),
+        "face_b": np.concatenate([-np.ones(n_v, dtype=np.int64), e_faces[:, 1]]),
+        "angle": np.concatenate([np.zeros(n_v), e_angle]),
+    }
+
+    # Placements: one per merged face. Rotate each face's vertices into its table frame T (face on
+    # z = 0, outward normal down), then order them by angle about their centroid: a convex face's
+    # vertices are all extreme, so that order is its counter-clockwise support polygon.
+    R = se3.rotation_between(g_normal, np.array([0.0, 0.0, -1.0]))  # (G, 3, 3) R_TO
+    pg, pv_id = vg[:, 1], vg[:, 0]  # (group, hull vertex) pairs, sorted by vertex
+    p_T = np.einsum("kij,kj->ki", R[pg], V[pv_id])
+    com_T = np.einsum("gij,j->gi", R, com)
+    counts = np.bincount(pg, minlength=n_groups)
+    z_mean = np.bincount(pg, weights=p_T[:, 2], minlength=n_groups) / counts
+    shift = np.stack([-com_T[:, 0], -com_T[:, 1], -z_mean], axis=1)
+    X_TO = se3.make_transform(R, shift)
+    xy = p_T[:, :2] + shift[pg, :2]
+    centre = np.stack([np.bincount(pg, weights=xy[:, i], minlength=n_groups) for i in (0, 1)], axis=1)
+    centre /= counts[:, None]
+    ang = np.arctan2(*(xy - centre[pg])[:, ::-1].T)
+    order = np.lexsort((ang, pg))
+    pg, pv_id, xy = pg[order], pv_id[order], xy[order]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nxt = np.arange(len(pg)) + 1
+    nxt[np.cumsum(counts) - 1] = starts  # wrap to each polygon's first vertex
+    margins = _polygon_margins(xy, xy[nxt], pg, n_groups)
+    heights = com_T[:, 2] + shift[:, 2]
+    support = [np.sort(v[v >= 0]) for v in np.split(remap[pv_id], np.cumsum(counts)[:-1])]
+    polygons = [p.ravel() for p in np.split(xy, np.cumsum(counts)[:-1])]
+    cols = se3.columns_from_matrix(X_TO)
+    placements = {
+        "placement_id": np.arange(n_groups),
+        "nx": g_normal[:, 0], "ny": g_normal[:, 1], "nz": g_normal[:, 2],
+        "area": g_area,
+        **cols,
+        "stable": margins >= params.sp_margin,
+        "margin": margins,
+        "com_height": heights,
+        "support_vertices": support,
+        "polygon": polygons,
+    }
+    return hull_cols, placements
+
+
+def _renumber_by_first(labels: np.ndarray) -> np.ndarray:
+    """Relabel so labels appear in increasing order of first occurrence (deterministic ids)."""
+    _, first = np.unique(labels, return_index=True)
+    order = np.argsort(first)
+    new = np.empty_like(order)
+    new[order] = np.arange(len(order))
+    return new[labels]
+
+
+def _polygon_margins(a: np.ndarray, b: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """Signed distance ``(G,)`` from the origin to CCW convex polygons given as edges a→b per group.
+
+    Positive inside (distance to the nearest edge line), negative outside (minus the distance to
+    the nearest edge segment). A polygon with fewer than three vertices has no inside.
+    """
+    e = b - a
+    length = np.linalg.norm(e, axis=1)
+    ok = length > tol.zero
+    inward = np.stack([-e[:, 1], e[:, 0]], axis=1) / np.where(ok, length, 1.0)[:, None]
+    side = np.where(ok, np.einsum("ij,ij->i", -a, inward), np.inf)
+    t = np.clip(np.einsum("ij,ij->i", -a, e) / np.maximum(length**2, tol.zero), 0, 1)
+    seg_dist = np.linalg.norm(a + t[:, None] * e, axis=1)
+    inside_d = np.full(n_groups, np.inf)
+    np.minimum.at(inside_d, group, side)
+    outside_d = np.full(n_groups, np.inf)
+    np.minimum.at(outside_d, group, seg_dist)
+    n_vert = np.bincount(group, minlength=n_groups)
+    inside = (inside_d >= 0) & (n_vert >= 3)
+    return np.where(inside, inside_d, -outside_d)
+
+
+# ----------------------------------------------------------------------------------------- segments
+def superimposed_segments(mesh: trimesh.Trimesh, params: Params) -> dict:
+    """Superimposed segments (§4.1): overlapping facets grown from seeds by normal difference.
+
+    Returns columns ``facet_id, seed, triangles (list), nx ny nz, area, cx cy cz, boundary (list of
+    vertex-id pairs, flattened)``; ``contact_surface`` marks facets with area >= ``min_facet_area``.
+    """
+    normals = np.asarray(mesh.face_normals)
+    areas = np.asarray(mesh.area_faces)
+    adj = np.asarray(mesh.face_adjacency)
+    n_f = len(normals)
+    cos_t = np.cos(np.radians(params.segment_angle_deg))
+    seeds = np.lexsort((np.arange(n_f), -np.round(areas, 12)))  # largest first, ties by index
+    neighbors = _face_neighbors(adj, n_f)
+    covered = np.zeros(n_f, dtype=bool)
+    facets, seed_of = [], []
+    for s in seeds:  # one iteration per facet: tens to a few hundred
+        if covered[s]:
+            continue
+        similar = normals @ normals[s] > cos_t
+        similar = np.append(similar, False)  # index -1 pads the neighbour table
+        similar[s] = True
+        members = _grow(s, similar, neighbors)
+        covered[members] = True
+        facets.append(members)
+        seed_of.append(s)
+    tri_area = [areas[m] for m in facets]
+    f_area = np.array([a.sum() for a in tri_area])
+    f_normal = np.array([(normals[m] * a[:, None]).sum(0) for m, a in zip(facets, tri_area, strict=True)])
+    f_normal /= np.linalg.norm(f_normal, axis=1, keepdims=True)
+    centers = np.asarray(mesh.triangles_center)
+    f_centroid = np.array([(centers[m] * a[:, None]).sum(0) / a.sum() for m, a in zip(facets, tri_area, strict=True)])
+    boundary = [_facet_boundary(mesh.faces[m]) for m in facets]
+    return {
+        "facet_id": np.arange(len(facets)),
+        "seed": np.array(seed_of, dtype=np.int64),
+        "triangles": [np.sort(m) for m in facets],
+        "nx": f_normal[:, 0], "ny": f_normal[:, 1], "nz": f_normal[:, 2],
+        "area": f_area,
+        "cx": f_centroid[:, 0], "cy": f_centroid[:, 1], "cz": f_centroid[:, 2],
+        "contact_surface": f_area >= params.min_facet_area,
+        "boundary": [b.ravel() for b in boundary],
+    }
+
+
+def _face_neighbors(adj: np.ndarray, n_f: int) -> np.ndarray:
+    """Neighbour table ``(n_f, k)`` of face ids from face adjacency pairs, padded with -1."""
+    both = np.concatenate([adj, adj[:, ::-1]])
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    counts = np.bincount(both[:, 0], minlength=n_f)
+    k = max(int(counts.max()) if len(counts) else 0, 1)
+    table = -np.ones((n_f, k), dtype=np.int64)
+    rank = np.arange(len(both)) - np.repeat(np.cumsum(counts) - counts, counts)
+    table[both[:, 0], rank] = both[:, 1]
+    return table
+
+
+def _grow(seed: int, allowed: np.ndarray, neighbors: np.ndarray) -> np.ndarray:
+    """Sorted face ids reachable from ``seed`` through faces with ``allowed`` (breadth first)."""
+    visited = np.zeros(len(allowed), dtype=bool)
+    visited[seed] = True
+    visited[-1] = True  # the padding id never joins
+    frontier = np.array([seed])
+    while len(frontier):
+        cand = neighbors[frontier].ravel()
+        cand = np.unique(cand[allowed[cand] & ~visited[cand]])
+        visited[cand] = True
+        frontier = cand
+    visited[-1] = False
+    return np.flatnonzero(visited[:-1])
+
+
+def _facet_boundary(faces: np.ndarray) -> np.ndarray:
+    """Vertex-id pairs ``(k, 2)`` of the edges used by exactly one triangle of ``faces``."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    return uniq[counts == 1]
+
+
+# ----------------------------------------------------------------------------------------- contacts
+def sample_contacts(mesh: trimesh.Trimesh, segments: dict, params: Params) -> dict:
+    """Contact points on facets (§4.1): even sampling, distribution onto facets, three filters.
+
+    Returns columns ``contact_id, facet_id, triangle, px py pz, nx ny nz`` (outward normal, frame O)
+    plus ``n_samples`` (points after thinning, before distribution) in a 0-d array under ``_stats``.
+    """
+    rng = np.random.default_rng(params.seed)
+    areas = np.asarray(mesh.area_faces)
+    n_raw = max(int(np.ceil(params.sample_density * mesh.area)), 16)
+    # Area-uniform samples: triangle by cumulative area, point by uniform barycentrics.
+    cdf = np.cumsum(areas) / areas.sum()
+    tri = np.minimum(np.searchsorted(cdf, rng.random(n_raw), side="right"), len(areas) - 1)
+    u, v = rng.random((2, n_raw))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    T = np.asarray(mesh.triangles)[tri]
+    pts = T[:, 0] + u[:, None] * (T[:, 1] - T[:, 0]) + v[:, None] * (T[:, 2] - T[:, 0])
+    keep = _thin(pts, params.sample_spacing)
+    pts, tri = pts[keep], tri[keep]
+    n_samples = len(pts)
+
+    # Distribute onto every contact-surface facet holding the sample's triangle.
+    n_facets = len(segments["facet_id"])
+    ok_facet = np.asarray(segments["contact_surface"])
+    rows = np.concatenate([t for f, t in enumerate(segments["triangles"]) if ok_facet[f]] or [np.zeros(0, int)])
+    cols = np.concatenate([np.full(len(t), f) for f, t in enumerate(segments["triangles"]) if ok_facet[f]]
+                          or [np.zeros(0, int)])
+    membership = sp.csr_matrix((np.ones(len(rows), dtype=bool), (rows, cols)), shape=(len(areas), n_facets))
+    m = membership[tri].tocoo()
+    order = np.lexsort((m.col, m.row))
+    sample_idx, facet_idx = m.row[order], m.col[order]
+    p = pts[sample_idx]
+    t_idx = tri[sample_idx]
+    n = np.asarray(mesh.face_normals)[t_idx]
+
+    # Filter 1: distance to the facet boundary.
+    far = _boundary_distance(mesh, segments, p, facet_idx) >= params.boundary_margin
+    # Filter 3: a ball touching at p (centre p + r n) must not intersect the object elsewhere.
+    free = _balls_free(mesh, p + params.ball_radius * n, params.ball_radius)
+    keep = far & free
+    p, n, facet_idx, t_idx = p[keep], n[keep], facet_idx[keep], t_idx[keep]
+    return {
+        "contact_id": np.arange(len(p)),
+        "facet_id": facet_idx.astype(np.int64),
+        "triangle": t_idx.astype(np.int64),
+        "px": p[:, 0], "py": p[:, 1], "pz": p[:, 2],
+        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2],
+        "_stats": {"samples": n_samples, "distributed": int(len(keep)), "near_boundary": int((~far).sum()),
+                   "ball_collision": int((far & ~free).sum())},
+    }
+
+
+def _thin(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Indices of a greedy subset of ``points`` (in order) with pairwise distances >= ``spacing``."""
+    tree = cKDTree(points)
+    pairs = tree.query_pairs(spacing, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(len(points))
+    pairs = np.sort(pairs, axis=1)
+    # Greedy in index order: a point survives unless an earlier survivor is within spacing.
+    order = np.argsort(pairs[:, 1], kind="stable")
+    later, earlier = pairs[order, 1], pairs[order, 0]
+    starts = np.searchsorted(later, np.arange(len(points)))
+    ends = np.searchsorted(later, np.arange(len(points)), side="right")
+    alive = np.ones(len(points), dtype=bool)
+    for i in np.flatnonzero(ends > starts):  # points with an earlier neighbour only
+        if alive[earlier[starts[i]:ends[i]]].any():
+            alive[i] = False
+    return np.flatnonzero(alive)
+
+
+def _boundary_distance(mesh, segments: dict, p: np.ndarray, facet_idx: np.ndarray) -> np.ndarray:
+    """Distance ``(C,)`` from each point to the nearest boundary edge of its facet (m)."""
+    bounds = [np.asarray(b).reshape(-1, 2) for b in segments["boundary"]]
+    counts = np.array([len(b) for b in bounds])
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    allb = np.concatenate(bounds) if len(bounds) else np.zeros((0, 2), int)
+    A, B = mesh.vertices[allb[:, 0]], mesh.vertices[allb[:, 1]]
+    reps = counts[facet_idx]
+    c_idx = np.repeat(np.arange(len(p)), reps)
+    starts = np.repeat(offsets[facet_idx], reps)
+    seg = starts + np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)
+    a, e = A[seg], B[seg] - A[seg]
+    t = np.clip(np.einsum("ij,ij->i", p[c_idx] - a, e) / np.maximum(np.einsum("ij,ij->i", e, e), tol.zero), 0, 1)
+    d = np.linalg.norm(a + t[:, None] * e - p[c_idx], axis=1)
+    out = np.full(len(p), np.inf)
+    np.minimum.at(out, c_idx, d)
+    return out
+
+
+def _fcl_mesh(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
+    bvh.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32))
+    bvh.endModel()
+    return fcl.CollisionObject(bvh, fcl.Transform())
+
+
+def _balls_free(mesh: trimesh.Trimesh, centres: np.ndarray, radius: float) -> np.ndarray:
+    """``(C,)`` True where a ball at ``centres`` (shrunk by 2 % so tangency is not a hit) misses the mesh."""
+    obj = _fcl_mesh(mesh)
+    ball = fcl.CollisionObject(fcl.Sphere(radius * 0.98), fcl.Transform())
+    req = fcl.CollisionRequest()
+    free = np.ones(len(centres), dtype=bool)
+    for i, c in enumerate(centres):  # one fcl call per contact (a few hundred; ~10 µs each)
+        ball.setTranslation(c)
+        free[i] = not fcl.collide(ball, obj, req, fcl.CollisionResult())
+    return free
+
+
+# -------------------------------------------------------------------------------------------- pairs
+def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, params: Params) -> dict:
+    """Antipodal contact pairs (§4.2) for two ball end-effectors, unordered, ``contact_a < contact_b``."""
+    P = np.stack([contacts["px"], contacts["py"], contacts["pz"]], axis=1)
+    N = np.stack([contacts["nx"], contacts["ny"], contacts["nz"]], axis=1)
+    fid = contacts["facet_id"]
+    FN = np.stack([segments["nx"], segments["ny"], segments["nz"]], axis=1)
+    cos_t = np.cos(np.radians(params.pair_angle_deg))
+    opposite = FN @ FN.T < -cos_t  # (nf, nf) facets with opposite normals
+    C = len(P)
+    best = np.full(C, -1)
+    best_score = np.full(C, -np.inf)
+    chunk = 512
+    for s in range(0, C, chunk):  # chunks of rows keep the (chunk, C, 3) block small
+        a = np.arange(s, min(s + chunk, C))
+        d = P[None, :, :] - P[a, None, :]
+        dist = np.linalg.norm(d, axis=2)
+        u = d / np.maximum(dist[..., None], tol.zero)
+        ca = -np.einsum("ijk,ik->ij", u, N[a])  # cos between a->b and a's inward normal
+        cb = np.einsum("ijk,jk->ij", u, N)  # cos between b->a and b's inward normal
+        score = np.minimum(ca, cb)
+        ok = opposite[fid[a]][:, fid] & (score > cos_t) & (dist > 2 * params.ball_radius)
+        score = np.where(ok, score, -np.inf)
+        j = np.argmax(score, axis=1)
+        best[a] = np.where(np.isfinite(score[np.arange(len(a)), j]), j, -1)
+        best_score[a] = score[np.arange(len(a)), j]
+    has = best >= 0
+    ab = np.sort(np.stack([np.flatnonzero(has), best[has]], axis=1), axis=1)
+    ab = np.unique(ab, axis=0) if len(ab) else np.zeros((0, 2), dtype=np.int64)
+    # The open segment between the two contacts must stay inside the object.
+    inside = _segments_inside(mesh, P[ab[:, 0]], P[ab[:, 1]]) if len(ab) else np.zeros(0, bool)
+    ab = ab[inside]
+    pa, pb = P[ab[:, 0]], P[ab[:, 1]]
+    d = pb - pa
+    width = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(width[:, None], tol.zero)
+    ang = np.arccos(np.clip(np.minimum(-np.einsum("ij,ij->i", u, N[ab[:, 0]]),
+                                       np.einsum("ij,ij->i", u, N[ab[:, 1]])), -1, 1))
+    mid = 0.5 * (pa + pb)
+    return {
+        "pair_id": np.arange(len(ab)),
+        "contact_a": ab[:, 0].astype(np.int64),
+        "contact_b": ab[:, 1].astype(np.int64),
+        "facet_a": fid[ab[:, 0]].astype(np.int64),
+        "facet_b": fid[ab[:, 1]].astype(np.int64),
+        "width": width,
+        "angle": ang,
+        "mx": mid[:, 0], "my": mid[:, 1], "mz": mid[:, 2],
+    }
+
+
+def _segments_inside(mesh: trimesh.Trimesh, a: np.ndarray, b: np.ndarray, inset: float = 0.002) -> np.ndarray:
+    """``(K,)`` True where the segment a→b, shortened by ``inset`` at both ends, misses the surface."""
+    obj = _fcl_mesh(mesh)
+    out = np.ones(len(a), dtype=bool)
+    req = fcl.CollisionRequest()
+    for i in range(len(a)):  # one fcl call per pair (about 100; 5-20 µs each)
+        d = b[i] - a[i]
+        length = np.linalg.norm(d)
+        if length <= 2 * inset:
+            out[i] = False
+            continue
+        R = se3.rotation_between(np.array([0.0, 0.0, 1.0]), d / length)
+        seg = fcl.CollisionObject(fcl.Cylinder(1e-5, length - 2 * inset),
+                                  fcl.Transform(R, 0.5 * (a[i] + b[i])))
+        out[i] = not fcl.collide(seg, obj, req, fcl.CollisionResult())
+    return out
+
+
+# ------------------------------------------------------------------------------------------ compute
+def compute(mesh: trimesh.Trimesh, mass: float, params: Params) -> Analysis:
+    """Run the whole analysis on a loaded mesh (frame O, metres) of ``mass`` kg."""
+    timings = {}
+    t0 = time.perf_counter()
+    props = mass_properties(mesh, mass)
+    hull, placements = analyze_hull(mesh, props["com"], params)
+    t1 = time.perf_counter()
+    segments = superimposed_segments(mesh, params)
+    t2 = time.perf_counter()
+    contacts = sample_contacts(mesh, segments, params)
+    stats = contacts.pop("_stats")
+    t3 = time.perf_counter()
+    pairs = find_contact_pairs(mesh, segments, contacts, params)
+    t4 = time.perf_counter()
+    timings.update(hull=t1 - t0, segments=t2 - t1, sampling=t3 - t2, pairs=t4 - t3, total=t4 - t0)
+    summary = {
+        "mass": mass,
+        "volume": float(props["volume"]),
+        "com": props["com"],
+        "inertia": props["inertia"],
+        "extents": np.asarray(mesh.extents),
+        "triangles": int(len(mesh.faces)),
+        "counts": {
+            "pivot_vertices": int((hull["kind"] == "vertex").sum()),
+            "tumble_edges": int((hull["kind"] == "edge").sum()),
+            "placements": int(len(placements["placement_id"])),
+            "stable_placements": int(placements["stable"].sum()),
+            "facets": int(len(segments["facet_id"])),
+            "contact_facets": int(segments["contact_surface"].sum()),
+            "samples": stats["samples"],
+            "contacts": int(len(contacts["contact_id"])),
+            "pairs": int(len(pairs["pair_id"])),
+        },
+        "filtered": {k: v for k, v in stats.items() if k != "samples"},
+    }
+    return Analysis(hull, segments, placements, contacts, pairs, summary, timings)
+
+
+# ---------------------------------------------------------------------------------------------- run
+HULL_FIELDS = [
+    Field("hull_id", "id"), Field("kind"), Field("v0", "id"), Field("v1", "id"),
+    *[Field(c, "m", "O") for c in ("x0", "y0", "z0", "x1", "y1", "z1")],
+    Field("face_a", "id"), Field("face_b", "id"), Field("angle", "rad"),
+]
+PLACEMENT_FIELDS = [
+    Field("placement_id", "id"), *[Field(c, "1", "O") for c in ("nx", "ny", "nz")], Field("area", "m^2"),
+    *[Field(c, "m", "T") for c in ("x", "y", "z")], *[Field(c, "1", "T") for c in ("qx", "qy", "qz", "qw")],
+    Field("stable"), Field("margin", "m"), Field("com_height", "m", "T"),
+    Field("support_vertices", "id"), Field("polygon", "m", "T"),
+]
+SEGMENT_FIELDS = [
+    Field("facet_id", "id"), Field("seed", "id"), Field("triangles", "id"),
+    *[Field(c, "1", "O") for c in ("nx", "ny", "nz")], Field("area", "m^2"),
+    *[Field(c, "m", "O") for c in ("cx", "cy", "cz")], Field("contact_surface"), Field("boundary", "id"),
+]
+CONTACT_FIELDS = [
+    Field("contact_id", "id"), Field("facet_id", "id"), Field("triangle", "id"),
+    *[Field(c, "m", "O") for c in ("px", "py", "pz")], *[Field(c, "1", "O") for c in ("nx", "ny", "nz")],
+]
+PAIR_FIELDS = [
+    Field("pair_id", "id"), Field("contact_a", "id"), Field("contact_b", "id"), Field("facet_a", "id"),
+    Field("facet_b", "id"), Field("width", "m"), Field("angle", "rad"),
+    *[Field(c, "m", "O") for c in ("mx", "my", "mz")],
+]
+OUTPUTS = ("hull", "placements", "segments", "contacts", "pairs")
+
+
+def run(mesh_path: str | Path, out_dir: str | Path, mass: float, params: Params, scale: float = 1.0,
+        producer: str = "analyze") -> Analysis:
+    """Load ``mesh_path``, analyse it and write the analysis artifacts into ``out_dir``.
+
+    Writes ``hull.parquet``, ``placements.parquet``, ``segments.parquet``, ``contacts.parquet``,
+    ``pairs.parquet``, ``object.ply`` (the loaded, scaled, repaired mesh that later stages use) and,
+    last, ``analysis.json`` (summary); timings go to ``analysis.json.timings.json``.
+    """
+    if not np.isfinite(mass) or mass <= 0:
+        raise InputError(f"{mesh_path}: --mass must be a positive number of kg (got {mass})")
+    t0 = time.perf_counter()
+    mesh = load_mesh(mesh_path, scale)
+    t_load = time.perf_counter() - t0
+    result = compute(mesh, mass, params)
+    out = Path(out_dir)
+    meta_params = {**asdict(params), "mass": mass, "scale": scale}
+    inputs = {"mesh": mesh_path}
+    with artifacts.atomic_path(out / "object.ply") as tmp:
+        tmp.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="binary"))
+    tables = dict(zip(OUTPUTS, (result.hull, result.placements, result.segments, result.contacts, result.pairs),
+                      strict=True))
+    fields = dict(zip(OUTPUTS, (HULL_FIELDS, PLACEMENT_FIELDS, SEGMENT_FIELDS, CONTACT_FIELDS, PAIR_FIELDS),
+                      strict=True))
+    for name in OUTPUTS:
+        meta = artifacts.make_meta(name, meta_params, inputs, producer)
+        artifacts.write_table(out / f"{name}.parquet", tables[name], fields[name], meta)
+    meta = artifacts.make_meta("analysis", meta_params, inputs, producer)
+    artifacts.write_json(out / "analysis.json", result.summary, meta)
+    artifacts.write_timings(out / "analysis.json", {**result.timings, "load": t_load})
+    return result

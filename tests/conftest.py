@@ -1,0 +1,41 @@
+"""Shared fixtures: tiny meshes from trimesh.creation, written to temporary files."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+REPO = Path(__file__).resolve().parents[1]
+PIANO = REPO / "data" / "objects" / "toy_piano.obj"
+
+
+def l_prism(depth: float = 0.2) -> trimesh.Trimesh:
+    """An L-shaped prism: profile (x, z) = a 0.3 x 0.1 foot with a 0.1 x 0.4 upright at x in [0, 0.1].
+
+    Resting on the foot's far end face (x = 0.3, normal +x) the CoM (x ~ 0.12) is 0.18 m
+    behind the face: that placement is not SP.
+    """
+    prof = np.array([(0, 0), (0.3, 0), (0.3, 0.1), (0.1, 0.1), (0.1, 0.4), (0, 0.4)], float)
+    cap = [(0, 1, 2), (0, 2, 3), (0, 3, 4), (0, 4, 5)]  # fan from (0, 0): the L is star-shaped from there
+    n = len(prof)
+    v = np.array([(x, y, z) for y in (-depth / 2, depth / 2) for x, z in prof])
+    faces = [tuple(i for i in f) for f in cap] + [tuple(n + i for i in f[::-1]) for f in cap]
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [(i, j, n + j), (i, n + j, n + i)]
+    m = trimesh.Trimesh(v, faces, process=True)
+    trimesh.repair.fix_normals(m)
+    return m
+
+
+@pytest.fixture
+def box_path(tmp_path) -> Path:
+    p = tmp_path / "box.stl"
+    trimesh.creation.box((0.3, 0.2, 0.4)).export(p)
+    return p
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
