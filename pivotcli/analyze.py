@@ -28,7 +28,7 @@ def analyze(
         float, typer.Option(help="Minimum distance of a contact to its facet boundary (m).")
     ] = _D.boundary_margin,
     ball_radius: Annotated[float, typer.Option(help="Ball end-effector radius (m).")] = _D.ball_radius,
-    pair_angle: Annotated[float, typer.Option(help="Tolerance on opposite normals of a pair (deg).")] = _D.pair_angle_deg,
+    pair_angle: Annotated[float, typer.Option(help="Opposite-normal tolerance of a pair (deg).")] = _D.pair_angle_deg,
     sp_margin: Annotated[float, typer.Option(help="CoM margin inside the support polygon (m).")] = _D.sp_margin,
     seed: Annotated[int, typer.Option(help="Seed of the surface sampling.")] = _D.seed,
 ) -> None:
