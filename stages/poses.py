@@ -1,0 +1,353 @@
+"""Object pose sampling on the table by pivoting and tumbling (§5.1, Fig. 7–9).
+
+Poses are not sampled at random: pivoting keeps a table vertex fixed, so the reachable poses form a
+lattice. From the start pose, breadth first, every pose is
+
+- **pivoted** about each corner of its support polygon (the pivot vertex stays on the table) by
+  ±θ_t about the vertical through that vertex (QS gait in SP; DS gait in USP, on the vertices that
+  lie on the table), and
+- **tumbled** about each support-polygon edge (a hull edge at least ``min_tumble_edge`` long with
+  both ends on the table) onto the adjacent hull face.
+
+Only placements that are SP on their own are sampled. A new pose is kept when its supporting
+vertices on the table hold the CoM (SP: the CoM's vertical projection is inside their polygon by
+``sp_margin``), or, with USP allowed, when the table's edge cuts its support but at least two
+supporting vertices lie on the table, so that one end-effector may hold it (USP, §5.1 and Fig. 14;
+the grasp stage decides with the stability test); it is rejected as ``off_table`` (fewer than two supporting vertices on the table or
+the CoM not above the table), ``unstable`` (USP not allowed) or ``obstacle`` (the object mesh hits an
+obstacle, python-fcl). Poses closer than ``merge_xy`` and ``merge_yaw`` on the same placement are one
+pose (the defaults only merge what is the same pose up to rounding, e.g. +θ then −θ about one vertex,
+so that every link is an exact pivot or tumble); every pivot or tumble between two kept poses is a
+link.
+
+Pivot corners: the support polygon of a curved foot has many hull vertices on its rim; vertices of a
+placement's support polygon closer than ``corner_cluster`` form one corner, represented by the vertex
+farthest from the polygon's centre (§4.1's rotational vertices, one under each foot).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import fcl
+import numpy as np
+
+from stages import se3
+
+PRIMITIVES = ("start", "pivot", "tumble")
+
+
+@dataclass(frozen=True)
+class Params:
+    """Pose sampling parameters (m, rad)."""
+
+    theta_t: float = np.radians(15.0)
+    max_poses: int = 400
+    usp: bool = True
+    sp_margin: float = 0.005
+    corner_cluster: float = 0.03
+    min_tumble_edge: float = 0.05
+    merge_xy: float = 1e-4
+    merge_yaw: float = 1e-4
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """What pose sampling needs of the analysis, frame O (arrays as read from the artifacts)."""
+
+    vertices: np.ndarray  # (V, 3) hull corner vertices
+    edges: np.ndarray  # (E, 2) hull vertex ids
+    edge_faces: np.ndarray  # (E, 2) placement ids on both sides
+    edge_angle: np.ndarray  # (E,) rad between the two faces' normals
+    normals: np.ndarray  # (G, 3) outward placement normals
+    X_TO: np.ndarray  # (G, 4, 4) resting transforms
+    support: list  # G arrays of hull vertex ids
+    stable: np.ndarray  # (G,) bool: SP when wholly on the table
+    com: np.ndarray  # (3,)
+    mesh_vertices: np.ndarray  # (n, 3) object mesh, for obstacle checks
+    mesh_faces: np.ndarray  # (m, 3)
+
+
+@dataclass(frozen=True)
+class PoseSet:
+    """Sampled poses (struct of arrays) and the pivot/tumble links between them."""
+
+    X_WO: np.ndarray  # (N, 4, 4)
+    placement: np.ndarray  # (N,) int
+    support: np.ndarray  # (N,) str: "SP", "USP"
+    status: np.ndarray  # (N,) str: "ok", "off_table", "unstable", "obstacle"
+    parent: np.ndarray  # (N,) int, -1 for the start
+    primitive: np.ndarray  # (N,) str: start / pivot / tumble
+    vertex: np.ndarray  # (N,) int pivot vertex (hull id), -1 otherwise
+    edge: np.ndarray  # (N, 2) int tumble edge vertex ids, -1 otherwise
+    angle: np.ndarray  # (N,) rad, signed rotation from the parent
+    margin: np.ndarray  # (N,) m, CoM margin inside the on-table support polygon (< 0 outside)
+    links: np.ndarray  # (L, 2) pose ids (a, b), both kept
+    link_primitive: np.ndarray  # (L,) str pivot / tumble
+    link_vertex: np.ndarray  # (L,) int
+    link_edge: np.ndarray  # (L, 2) int
+    link_angle: np.ndarray  # (L,) rad, rotation from a to b
+
+
+def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
+    """Per placement, the hull vertex ids of its support-polygon corners (one per cluster)."""
+    out = []
+    for g, sup in enumerate(model.support):
+        sup = np.asarray(sup, dtype=np.int64)
+        p = se3.transform_points(model.X_TO[g], model.vertices[sup])[:, :2]
+        centre = p.mean(axis=0)
+        far = np.linalg.norm(p - centre, axis=1)
+        order = np.argsort(-far, kind="stable")
+        chosen: list[int] = []
+        for i in order:  # a handful of vertices per face
+            if all(np.linalg.norm(p[i] - p[j]) >= cluster for j in chosen):
+                chosen.append(i)
+        out.append(np.sort(sup[chosen]))
+    return out
+
+
+def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: int, table_size, obstacles,
+                 params: Params) -> PoseSet:
+    """Breadth-first pose lattice from the start (see the module docstring).
+
+    ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m.
+    """
+    corners = pivot_corners(model, params.corner_cluster)
+    half = np.asarray(table_size, dtype=float) / 2
+    collide = _make_object_collision_fn(model, obstacles)
+    rows: list[dict] = []
+    links: list[tuple] = []
+    index: dict[tuple, list[int]] = {}
+
+    def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
+        sup = np.asarray(model.support[g], dtype=np.int64)
+        p = se3.transform_points(X, model.vertices[sup])
+        on = np.all(np.abs(p[:, :2]) <= half, axis=1)
+        com = se3.transform_points(X, model.com)
+        if on.sum() < 2 or np.any(np.abs(com[:2]) > half):  # the CoM stays above the table
+            return "off_table", "USP", -np.inf
+        margin = _margin(p[on, :2], com[:2])
+        if margin >= params.sp_margin:
+            kind = "SP"
+        elif params.usp:
+            kind = "USP"
+        else:
+            return "unstable", "USP", margin
+        if collide(X):
+            return "obstacle", kind, margin
+        return "ok", kind, margin
+
+    def key_of(X: np.ndarray, g: int) -> tuple[int, float, float, float]:
+        com = se3.transform_points(X, model.com)
+        R = X[:3, :3] @ model.X_TO[g][:3, :3].T
+        return g, com[0], com[1], float(se3.yaw_of(R))
+
+    def find(k) -> int:
+        g, x, y, yaw = k
+        cx, cy = int(np.floor(x / params.merge_xy)), int(np.floor(y / params.merge_xy))
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for i in index.get((g, cx + dx, cy + dy), ()):
+                    _, x2, y2, yaw2 = rows[i]["key"]
+                    dyaw = abs((yaw - yaw2 + np.pi) % (2 * np.pi) - np.pi)
+                    if np.hypot(x - x2, y - y2) < params.merge_xy and dyaw < params.merge_yaw:
+                        return i
+        return -1
+
+    def add(X, g, parent, primitive, vertex, edge, angle) -> int:
+        k = key_of(X, g)
+        found = find(k)
+        if found >= 0:
+            if parent >= 0 and rows[found]["status"] == "ok" and found != parent:
+                links.append((parent, found, primitive, vertex, edge, angle))
+            return -1
+        status, kind, margin = classify(X, g)
+        i = len(rows)
+        rows.append(dict(X=X, g=g, kind=kind, status=status, parent=parent, primitive=primitive, vertex=vertex,
+                         edge=edge, angle=angle, margin=margin, key=k))
+        index.setdefault((g, int(np.floor(k[1] / params.merge_xy)), int(np.floor(k[2] / params.merge_xy))),
+                         []).append(i)
+        if status == "ok" and parent >= 0:
+            links.append((parent, i, primitive, vertex, edge, angle))
+        return i if status == "ok" else -1
+
+    first = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
+    queue = deque([first] if first >= 0 else [])
+    n_ok = 1 if first >= 0 else 0
+    while queue and n_ok < params.max_poses:  # graph search over at most max_poses poses
+        i = queue.popleft()
+        X, g = rows[i]["X"], rows[i]["g"]
+        for child in _successors(model, corners, X, g, half, params):
+            if n_ok >= params.max_poses:
+                break
+            j = add(child[0], child[1], i, *child[2:])
+            if j >= 0:
+                n_ok += 1
+                queue.append(j)
+    return _to_pose_set(rows, links)
+
+
+def _successors(model, corners, X, g, half, params):
+    """Candidate (X, placement, primitive, vertex, edge, angle) children of one pose."""
+    out = []
+    for v in corners[g]:
+        p = se3.transform_points(X, model.vertices[v])
+        if np.any(np.abs(p[:2]) > half):
+            continue  # a vertex off the table cannot be the pivot
+        for sign in (1.0, -1.0):
+            T = se3.transform_about_line(p, np.array([0.0, 0.0, 1.0]), sign * params.theta_t)
+            out.append((T @ X, g, "pivot", int(v), (-1, -1), sign * params.theta_t))
+    adjacent = np.flatnonzero((model.edge_faces == g).any(axis=1))
+    for e in adjacent:
+        a, b = model.edges[e]
+        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
+        if np.linalg.norm(pb - pa) < params.min_tumble_edge or np.any(np.abs(np.stack([pa, pb])[:, :2]) > half):
+            continue
+        done = _tumble(model, X, g, e)
+        if done is not None:
+            out.append((done[0], done[1], "tumble", -1, (int(a), int(b)), done[2]))
+    return out
+
+
+def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 16):
+    """Roll the object from face ``g`` over hull edge ``e`` until it rests on a stable face.
+
+    A curved foot puts narrow hull faces between two stable faces; the object rolls over them in
+    turn (the rotation axis moves from the foot line to the body edge, as measured in PyBullet), each
+    time over the edge of the current face beyond which its CoM lies. Returns ``(X_WO, face, total
+    angle)`` or None when no stable face comes within ``max_faces`` faces or half a turn.
+    """
+    total = 0.0
+    for _ in range(max_faces):  # a few faces at most
+        a, b = model.edges[e]
+        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
+        g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
+        angle = float(model.edge_angle[e])
+        axis = (pb - pa) / np.linalg.norm(pb - pa)
+        n2 = se3.rotate_vectors(X, model.normals[g2])
+        for sign in (1.0, -1.0):  # the sign that turns face g2 onto the table
+            T = se3.transform_about_line(pa, axis, sign * angle)
+            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
+                break
+        else:
+            return None
+        X, g, total = T @ X, g2, total + angle
+        if total > np.pi + 1e-9:
+            return None
+        if model.stable[g]:
+            return X, g, total
+        # Still rolling: over the edge of face g that the CoM's projection lies beyond.
+        com = se3.transform_points(X, model.com)
+        best, best_d = -1, 0.0
+        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):
+            if e2 == e:
+                continue
+            q = se3.transform_points(X, model.vertices[model.edges[e2]])
+            d = q[1, :2] - q[0, :2]
+            centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
+            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
+            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
+                nrm = -nrm  # outward from the face
+            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
+            if beyond > best_d:
+                best, best_d = e2, beyond
+        if best < 0:
+            return None
+        e = best
+    return None
+
+
+def _margin(p: np.ndarray, q: np.ndarray) -> float:
+    """Signed distance of ``q (2,)`` inside the convex hull of ``p (k, 2)`` (< 0 outside)."""
+    from stages.analyze import _polygon_margins
+
+    c = p.mean(axis=0)
+    order = np.argsort(np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0]))
+    hull = _convex_hull_2d(p[order])
+    if len(hull) < 3:
+        if len(hull) == 2:  # an edge: outside by the distance to the segment
+            a, b = hull
+            t = np.clip(np.dot(q - a, b - a) / max(np.dot(b - a, b - a), 1e-12), 0, 1)
+            return -float(np.linalg.norm(a + t * (b - a) - q))
+        return -float(np.linalg.norm(hull[0] - q)) if len(hull) else -np.inf
+    a = hull - q
+    return float(_polygon_margins(a, np.roll(a, -1, axis=0), np.zeros(len(a), dtype=np.int64), 1)[0])
+
+
+def _convex_hull_2d(p: np.ndarray) -> np.ndarray:
+    """Counter-clockwise convex hull of 2-D points (monotone chain; a few dozen points)."""
+    p = np.unique(np.round(p, 9), axis=0)
+    if len(p) < 3:
+        return p
+
+    def chain(points):
+        out: list = []
+        for q in points:
+            while len(out) >= 2 and _cross2(out[-1] - out[-2], q - out[-2]) <= 1e-12:
+                out.pop()
+            out.append(q)
+        return out
+
+    lower, upper = chain(p), chain(p[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _make_object_collision_fn(model: ObjectModel, obstacles):
+    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
+    if not obstacles:
+        return lambda X: False
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
+    bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
+    bvh.endModel()
+    obj = fcl.CollisionObject(bvh, fcl.Transform())
+    bodies = [fcl_object(ob) for ob in obstacles]
+    req = fcl.CollisionRequest()
+
+    def collide(X: np.ndarray) -> bool:
+        obj.setTransform(fcl.Transform(X[:3, :3], X[:3, 3]))
+        return any(fcl.collide(obj, b, req, fcl.CollisionResult()) for b in bodies)
+
+    return collide
+
+
+def fcl_object(ob) -> fcl.CollisionObject:
+    """An fcl collision object for a ``stages.scene.ObstacleGeometry``."""
+    if ob.kind == "box":
+        geom = fcl.Box(*ob.size)
+    elif ob.kind == "cylinder":
+        geom = fcl.Cylinder(ob.radius, ob.height)
+    else:
+        geom = fcl.BVHModel()
+        geom.beginModel(len(ob.vertices), len(ob.faces))
+        geom.addSubModel(np.asarray(ob.vertices, float), np.asarray(ob.faces, np.int32))
+        geom.endModel()
+    X = np.asarray(ob.X_WOb, dtype=float)
+    return fcl.CollisionObject(geom, fcl.Transform(X[:3, :3], X[:3, 3]))
+
+
+def _to_pose_set(rows: list[dict], links: list[tuple]) -> PoseSet:
+    n = len(rows)
+    L = len(links)
+    return PoseSet(
+        X_WO=np.array([r["X"] for r in rows]).reshape(n, 4, 4),
+        placement=np.array([r["g"] for r in rows], dtype=np.int64),
+        support=np.array([r["kind"] for r in rows], dtype=str),
+        status=np.array([r["status"] for r in rows], dtype=str),
+        parent=np.array([r["parent"] for r in rows], dtype=np.int64),
+        primitive=np.array([r["primitive"] for r in rows], dtype=str),
+        vertex=np.array([r["vertex"] for r in rows], dtype=np.int64),
+        edge=np.array([r["edge"] for r in rows], dtype=np.int64).reshape(n, 2),
+        angle=np.array([r["angle"] for r in rows], dtype=float),
+        margin=np.array([r["margin"] for r in rows], dtype=float),
+        links=np.array([(a, b) for a, b, *_ in links], dtype=np.int64).reshape(L, 2),
+        link_primitive=np.array([lk[2] for lk in links], dtype=str),
+        link_vertex=np.array([lk[3] for lk in links], dtype=np.int64),
+        link_edge=np.array([lk[4] for lk in links], dtype=np.int64).reshape(L, 2),
+        link_angle=np.array([lk[5] for lk in links], dtype=float),
+    )

@@ -1,0 +1,104 @@
+"""Pose sampling (§5.1): pivot steps and tumbles on a box, SP/USP near the table edge, obstacles."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from stages import analyze, poses, se3
+from stages.scene import ObstacleGeometry
+
+BOX = (0.2, 0.3, 0.4)
+
+
+def box_model(size=BOX) -> poses.ObjectModel:
+    mesh = trimesh.creation.box(size)
+    r = analyze.compute(mesh, 2.0, analyze.Params())
+    is_v = r.hull["kind"] == "vertex"
+    return poses.ObjectModel(
+        vertices=np.stack([r.hull["x0"][is_v], r.hull["y0"][is_v], r.hull["z0"][is_v]], 1),
+        edges=np.stack([r.hull["v0"][~is_v], r.hull["v1"][~is_v]], 1),
+        edge_faces=np.stack([r.hull["face_a"][~is_v], r.hull["face_b"][~is_v]], 1),
+        edge_angle=r.hull["angle"][~is_v],
+        normals=np.stack([r.placements["nx"], r.placements["ny"], r.placements["nz"]], 1),
+        X_TO=se3.matrix_from_columns(r.placements),
+        support=list(r.placements["support_vertices"]),
+        stable=r.placements["stable"],
+        com=r.summary["com"],
+        mesh_vertices=np.asarray(mesh.vertices),
+        mesh_faces=np.asarray(mesh.faces),
+    )
+
+
+def upright(model, xy=(0.0, 0.0), yaw=0.0):
+    g = int(np.argmax(model.normals @ np.array([0, 0, -1.0])))
+    return se3.make_transform(se3.rot_z(yaw), np.array([*xy, 0.0])) @ model.X_TO[g], g
+
+
+def test_pivot_steps_rotate_exactly_about_the_vertical_through_the_vertex():
+    model = box_model()
+    X0, g = upright(model)
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=60))
+    piv = np.flatnonzero((ps.primitive == "pivot") & (ps.status == "ok"))
+    assert len(piv) > 20
+    for i in piv:
+        parent, v = ps.parent[i], ps.vertex[i]
+        p_parent = se3.transform_points(ps.X_WO[parent], model.vertices[v])
+        p_child = se3.transform_points(ps.X_WO[i], model.vertices[v])
+        np.testing.assert_allclose(p_child, p_parent, atol=1e-12)  # the vertex does not move
+        R = ps.X_WO[i][:3, :3] @ ps.X_WO[parent][:3, :3].T
+        np.testing.assert_allclose(R, se3.rot_z(ps.angle[i]), atol=1e-12)
+        assert abs(ps.angle[i]) == pytest.approx(np.radians(15))
+        assert p_child[2] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_tumbling_a_box_lands_on_the_adjacent_face():
+    model = box_model()
+    X0, g = upright(model)
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=40))
+    tum = np.flatnonzero((ps.primitive == "tumble") & (ps.status == "ok") & (ps.parent == 0))
+    assert len(tum) == 4  # over each of the four bottom edges
+    for i in tum:
+        assert ps.angle[i] == pytest.approx(np.pi / 2)
+        n_parent = model.normals[ps.placement[0]]
+        assert abs(np.dot(model.normals[ps.placement[i]], n_parent)) < 1e-9  # adjacent, not opposite
+        v = se3.transform_points(ps.X_WO[i], model.mesh_vertices)
+        assert v[:, 2].min() == pytest.approx(0.0, abs=1e-9)
+        # Lying on a side face its height is the box's 0.2 or 0.3 m size.
+        assert v[:, 2].max() == pytest.approx(0.2, abs=1e-9) or v[:, 2].max() == pytest.approx(0.3, abs=1e-9)
+
+
+def test_overhang_at_the_table_edge_is_usp_and_without_usp_rejected():
+    model = box_model()
+    # The box's CoM 2 cm beyond the table edge (x = 0.3): the support is cut, 2 vertices stay on.
+    X0, g = upright(model, xy=(0.2, 0.0))
+    edge = se3.transform_about_line(np.array([0.3, 0, 0]), np.array([0, 1.0, 0]), 0.0)
+    X = se3.make_transform(np.eye(3), np.array([0.12, 0.0, 0.0])) @ edge @ X0
+    ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1))
+    assert ps.status[0] == "ok" and ps.support[0] == "USP" and ps.margin[0] < 0
+    ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1, usp=False))
+    assert ps.status[0] == "unstable"
+
+
+def test_poses_hitting_an_obstacle_are_rejected_and_never_expanded():
+    model = box_model()
+    X0, g = upright(model)
+    wall = ObstacleGeometry(name="obstacles[0]", kind="box", X_WOb=se3.make_transform(np.eye(3), [0.25, 0, 0.2]),
+                            size=(0.1, 2.0, 0.4))  # across the whole table: no way round
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), (wall,), poses.Params(max_poses=80))
+    assert (ps.status == "obstacle").any()
+    assert not np.isin(np.flatnonzero(ps.status == "obstacle"), ps.parent).any()
+    ok = ps.status == "ok"
+    v = np.einsum("nij,kj->nki", ps.X_WO[ok][:, :3, :3], model.mesh_vertices) + ps.X_WO[ok][:, None, :3, 3]
+    assert (v[..., 0].max(axis=1) <= 0.2 + 1e-9).all()  # nothing kept reaches into the wall at x >= 0.2
+
+
+def test_links_join_kept_poses_and_duplicates_merge():
+    model = box_model()
+    X0, g = upright(model)
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=150))
+    assert (ps.status[ps.links] == "ok").all()
+    # Pivoting +15 then -15 about the same vertex returns to the parent: merged, so a link, no new pose.
+    keys = np.round(np.c_[ps.X_WO[:, :3, 3], ps.placement], 4)
+    ok = ps.status == "ok"
+    assert len(np.unique(keys[ok], axis=0)) == ok.sum()
+    assert len(ps.links) > ok.sum() - 1
