@@ -13,12 +13,12 @@ Only placements that are SP on their own are sampled. A new pose is kept when it
 vertices on the table hold the CoM (SP: the CoM's vertical projection is inside their polygon by
 ``sp_margin``), or, with USP allowed, when the table's edge cuts its support but at least two
 supporting vertices lie on the table, so that one end-effector may hold it (USP, §5.1 and Fig. 14;
-the grasp stage decides with the stability test); it is rejected as ``off_table`` (fewer than two supporting vertices on the table or
-the CoM not above the table), ``unstable`` (USP not allowed) or ``obstacle`` (the object mesh hits an
-obstacle, python-fcl). Poses closer than ``merge_xy`` and ``merge_yaw`` on the same placement are one
-pose (the defaults only merge what is the same pose up to rounding, e.g. +θ then −θ about one vertex,
-so that every link is an exact pivot or tumble); every pivot or tumble between two kept poses is a
-link.
+the grasp stage decides with the stability test). It is rejected as ``off_table`` (fewer than two
+supporting vertices on the table, or the CoM not above the table), ``unstable`` (USP not allowed)
+or ``obstacle`` (the object mesh hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
+``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
+to rounding (e.g. +θ then −θ about one vertex), so that every link is an exact pivot or tumble.
+Every pivot or tumble between two kept poses is a link.
 
 Pivot corners: the support polygon of a curved foot has many hull vertices on its rim; vertices of a
 placement's support polygon closer than ``corner_cluster`` form one corner, represented by the vertex

@@ -69,14 +69,17 @@ def test_tumbling_a_box_lands_on_the_adjacent_face():
 
 def test_overhang_at_the_table_edge_is_usp_and_without_usp_rejected():
     model = box_model()
-    # The box's CoM 2 cm beyond the table edge (x = 0.3): the support is cut, 2 vertices stay on.
-    X0, g = upright(model, xy=(0.2, 0.0))
-    edge = se3.transform_about_line(np.array([0.3, 0, 0]), np.array([0, 1.0, 0]), 0.0)
-    X = se3.make_transform(np.eye(3), np.array([0.12, 0.0, 0.0])) @ edge @ X0
+    # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: only the two vertices at x = 0.15
+    # are on the table, the CoM (x = 0.25) is above the table but outside that edge.
+    X, g = upright(model, xy=(0.25, 0.0))
     ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1))
-    assert ps.status[0] == "ok" and ps.support[0] == "USP" and ps.margin[0] < 0
+    assert ps.status[0] == "ok" and ps.support[0] == "USP"
+    assert ps.margin[0] == pytest.approx(-0.1, abs=1e-9)
     ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1, usp=False))
     assert ps.status[0] == "unstable"
+    # CoM beyond the table edge: off the table whatever the support.
+    X, g = upright(model, xy=(0.31, 0.0))
+    assert poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1)).status[0] == "off_table"
 
 
 def test_poses_hitting_an_obstacle_are_rejected_and_never_expanded():
