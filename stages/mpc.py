@@ -74,7 +74,7 @@ import numpy as np
 import piqp
 from scipy.spatial.transform import Rotation
 
-from stages import se3, tol
+from stages import se3, stability
 from stages.errors import InputError
 
 #: Statuses of an MPC run.
@@ -286,19 +286,7 @@ def tangent_basis(n: np.ndarray, radial=None) -> tuple[np.ndarray, np.ndarray]:
     """
     n = np.asarray(n, dtype=float)
     n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-    t1 = np.stack([n[..., 1], -n[..., 0], np.zeros(n.shape[:-1])], axis=-1)
-    s = np.hypot(n[..., 0], n[..., 1])
-    vertical = s <= 1e-6
-    if np.any(vertical):
-        radial = np.zeros(n.shape) if radial is None else np.broadcast_to(np.asarray(radial, float), n.shape)
-        radial = radial * np.array([1.0, 1.0, 0.0])
-        radial = radial - np.sum(radial * n, axis=-1, keepdims=True) * n
-        ex = np.array([1.0, 0.0, 0.0]) - n[..., :1] * n
-        alt = np.where((np.linalg.norm(radial, axis=-1) > tol.merge)[..., None], radial, ex)
-        t1 = np.where(vertical[..., None], alt, t1)
-        s = np.where(vertical, np.linalg.norm(alt, axis=-1), s)
-    t1 = t1 / np.maximum(s, tol.zero)[..., None]
-    return t1, _cross(n, t1)
+    return stability.contact_frames(n, np.zeros(n.shape) if radial is None else radial)
 
 
 def friction_pyramid_rays(n: np.ndarray, mu: float, radial=None) -> np.ndarray:
