@@ -1,0 +1,1270 @@
+"""Dual-arm robot model: URDF parsing, batched forward and position-only inverse kinematics, collisions.
+
+Works on batches of joint vectors ``q (N, n)`` (rad) and world points ``p_W (N, 3)`` (m); every kernel
+is vectorized over N. The robot is read from a URDF (``data/robots/sda5f.urdf`` by default) with
+``xml.etree``: the tree is split into a static *trunk* (the base and everything reached from it through
+fixed joints or the torso joint, which planning holds at a fixed angle) and two serial *arms*, each the
+path from the trunk to one end-effector link. A ball end-effector makes a point contact, so IK solves for
+the ball centre only (paper §4.2: "we check whether the inverse kinematics (IK) is solvable").
+
+Collision geometry is a set of simple primitives: on moving links capsules (segment ``a -> b`` in the
+link frame plus radius; a sphere is a zero-length capsule and a cylinder its enclosing capsule), on the
+trunk boxes or capsules. ``make_collision_fn`` tests them in numpy against the table, obstacles, each
+other and (with python-fcl, after numpy pre-filters) the object mesh.
+
+Frames use Drake's monogram notation (see STYLE.md): ``X_WB`` is the robot base in the world,
+``p_W`` a point in world coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stages import se3
+from stages.errors import InputError
+
+#: IK outcome names; ``IKResult.reason`` holds these strings.
+IK_REASONS = ("ok", "ik_unreachable", "joint_limit", "joint_jump")
+
+#: Default rest posture (rad) for both arms: the IK's secondary objective and the centre of its seed
+#: library. Chosen once by optimisation on this model: the ball about 0.6 m in front of the shoulders at
+#: shoulder height, the tool pointing inwards (towards the other arm), the elbow out to the side, every
+#: joint at least 0.59 rad inside its limits and every tested capsule pair at least 1 cm apart. The
+#: same vector gives the mirrored posture on the right arm.
+SDA5F_REST = (1.64, -0.18, -0.22, 0.0, 0.0, -1.31, 0.0)
+
+_ZERO = 1e-12  # rotation-matrix entries below this are structural zeros (cos(pi/2) = 6e-17)
+
+
+def retain_freed_memory(trim_threshold: int = 1 << 30, mmap_threshold: int = 32 << 20) -> bool:
+    """Ask glibc to keep freed heap memory for reuse instead of returning it to the OS (process-wide).
+
+    The batched kernels allocate and free tens of MB of numpy temporaries per iteration. With glibc's
+    defaults those pages go back to the OS and are faulted in again on the next iteration, which is
+    slow on the project's 2-core VM (``bench/bench_robot.py``, shared machine: IK 111,000 -> 130,000
+    targets/s on 10,000 targets and 156,000 -> 191,000 on 60,000; collision checks 84,000 -> 108,000
+    checks/s on 10,000). Call once at program start (same effect as ``MALLOC_TRIM_THRESHOLD_`` and
+    ``MALLOC_MMAP_THRESHOLD_`` in the environment). Returns False where glibc's ``mallopt`` is missing.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return False
+    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # from glibc's malloc.h
+    return bool(mallopt(M_TRIM_THRESHOLD, int(trim_threshold))) and bool(
+        mallopt(M_MMAP_THRESHOLD, int(mmap_threshold)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# URDF parsing
+
+
+@dataclass(frozen=True)
+class _Geom:
+    kind: str  # "box" | "capsule"
+    X_LG: np.ndarray  # (4, 4) pose of the geometry in its link frame
+    dims: np.ndarray  # box: half extents (3,); capsule: (a (3,), b (3,), radius) packed as (7,)
+
+
+@dataclass(frozen=True)
+class _Joint:
+    name: str
+    kind: str
+    parent: str
+    child: str
+    X_PC: np.ndarray  # (4, 4) origin: child joint frame in the parent link frame at q = 0
+    axis: np.ndarray  # (3,) unit, in the joint frame
+    lower: float
+    upper: float
+    velocity: float
+
+
+def _floats(text: str | None, n: int, default: float, where: str) -> np.ndarray:
+    if text is None:
+        return np.full(n, default)
+    try:
+        v = np.array([float(x) for x in text.split()])
+    except ValueError as exc:
+        raise InputError(f"{where}: cannot read numbers from {text!r}") from exc
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise InputError(f"{where}: expected {n} finite numbers, got {text!r}")
+    return v
+
+
+def _matrix_from_rpy(rpy: np.ndarray) -> np.ndarray:
+    """URDF rpy: fixed axes X, Y, Z, i.e. ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def _origin(el: ET.Element | None, where: str) -> np.ndarray:
+    o = None if el is None else el.find("origin")
+    xyz = _floats(None if o is None else o.get("xyz"), 3, 0.0, where)
+    rpy = _floats(None if o is None else o.get("rpy"), 3, 0.0, where)
+    return se3.make_transform(_matrix_from_rpy(rpy), xyz)
+
+
+def _parse_geom(el: ET.Element, where: str) -> _Geom:
+    X = _origin(el, where)
+    g = el.find("geometry")
+    shape = None if g is None else next(iter(g), None)
+    if shape is None:
+        raise InputError(f"{where}: <collision> without a geometry")
+
+    def num(attr: str) -> float:
+        value = _floats(shape.get(attr), 1, math.nan, f"{where} <{shape.tag} {attr}>")[0]
+        if not value >= 0:
+            raise InputError(f"{where}: <{shape.tag}> needs a non-negative {attr}")
+        return value
+
+    if shape.tag == "box":
+        return _Geom("box", X, _floats(shape.get("size"), 3, math.nan, where) / 2)
+    if shape.tag in ("capsule", "cylinder"):
+        # A cylinder is replaced by its enclosing capsule (conservative by one radius at each end).
+        r, h = num("radius"), num("length")
+        a = se3.transform_points(X, np.array([0.0, 0.0, -h / 2]))
+        b = se3.transform_points(X, np.array([0.0, 0.0, h / 2]))
+        return _Geom("capsule", np.eye(4), np.concatenate([a, b, [r]]))
+    if shape.tag == "sphere":
+        c = X[:3, 3]
+        return _Geom("capsule", np.eye(4), np.concatenate([c, c, [num("radius")]]))
+    raise InputError(f"{where}: collision geometry <{shape.tag}> is not supported (use box, capsule, "
+                     "cylinder or sphere)")
+
+
+def _parse_urdf(path: Path) -> tuple[dict[str, list[_Geom]], dict[str, _Joint]]:
+    """Links (name -> collision geometries) and joints (child link name -> joint) of a URDF file."""
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError) as exc:
+        raise InputError(f"{path}: cannot read URDF ({exc})") from exc
+    if root.tag != "robot":
+        raise InputError(f"{path}: the root element is <{root.tag}>, expected <robot>")
+    links: dict[str, list[_Geom]] = {}
+    for el in root.findall("link"):
+        name = el.get("name")
+        if not name or name in links:
+            raise InputError(f"{path}: a <link> has no name or a duplicate name {name!r}")
+        links[name] = [_parse_geom(c, f"{path}: link {name}") for c in el.findall("collision")]
+    joints: dict[str, _Joint] = {}
+    for el in root.findall("joint"):
+        name, kind = el.get("name"), el.get("type")
+        where = f"{path}: joint {name}"
+        parent, child = el.find("parent"), el.find("child")
+        if parent is None or child is None:
+            raise InputError(f"{where}: needs <parent> and <child>")
+        p, c = parent.get("link"), child.get("link")
+        if p not in links or c not in links:
+            raise InputError(f"{where}: unknown link {p!r} or {c!r}")
+        if c in joints:
+            raise InputError(f"{where}: link {c!r} has two parent joints")
+        if kind not in ("fixed", "revolute", "continuous"):
+            raise InputError(f"{where}: joint type {kind!r} is not supported (fixed, revolute, continuous)")
+        axis = _floats(None if el.find("axis") is None else el.find("axis").get("xyz"), 3, 0.0, where)
+        if el.find("axis") is None:
+            axis = np.array([1.0, 0.0, 0.0])  # the URDF default
+        lo, hi, vel = -math.pi, math.pi, math.inf
+        if kind != "fixed":
+            if np.linalg.norm(axis) < 1e-9:
+                raise InputError(f"{where}: zero axis")
+            axis = axis / np.linalg.norm(axis)
+            lim = el.find("limit")
+            if lim is not None:
+                vel = _floats(lim.get("velocity"), 1, math.inf, where)[0]
+            if kind == "revolute":
+                if lim is None or lim.get("lower") is None or lim.get("upper") is None:
+                    raise InputError(f"{where}: a revolute joint needs <limit lower upper>")
+                lo = _floats(lim.get("lower"), 1, 0.0, where)[0]
+                hi = _floats(lim.get("upper"), 1, 0.0, where)[0]
+                if not lo < hi:
+                    raise InputError(f"{where}: lower limit {lo} is not below upper limit {hi}")
+        joints[c] = _Joint(name, kind, p, c, _origin(el, where), axis, lo, hi, vel)
+    return links, joints
+
+
+# ----------------------------------------------------------------------------------------------------
+# Model
+
+
+@dataclass(frozen=True, eq=False)
+class Arm:
+    """One serial arm: the links from its first movable joint to the end-effector link.
+
+    ``frames`` are the links in chain order (movable links, then fixed ones such as tool0, stick and
+    ball); ``fk`` returns their world poses in that order. Frame ``k`` is ``origin_R/origin_t[k]`` after
+    frame ``k - 1`` (frame -1 is ``X_WR``, the static link the arm hangs from, in the world), then a
+    rotation by ``q[joint[k]]`` about ``axis[k]`` when ``joint[k] >= 0``.
+    """
+
+    name: str
+    joint_names: tuple[str, ...]  # (n,) movable joints
+    link_names: tuple[str, ...]  # (L,) frames returned by fk
+    eef_index: int  # index of the end-effector (ball) link in link_names
+    X_WR: np.ndarray  # (4, 4)
+    origin_R: np.ndarray  # (L, 3, 3)
+    origin_t: np.ndarray  # (L, 3) m
+    joint: np.ndarray  # (L,) int, -1 for fixed
+    axis: np.ndarray  # (L, 3) unit, in the frame after the origin
+    lower: np.ndarray  # (n,) rad
+    upper: np.ndarray  # (n,) rad
+    velocity: np.ndarray  # (n,) rad/s
+    q_rest: np.ndarray  # (n,) rad, clipped into the limits
+    cap_link: np.ndarray  # (C,) int, frame of each collision capsule
+    cap_a: np.ndarray  # (C, 3) m, segment start in its link frame
+    cap_b: np.ndarray  # (C, 3) m, segment end
+    cap_r: np.ndarray  # (C,) m radius
+    cap_names: tuple[str, ...]  # (C,) link name of each capsule
+    reach_centre: np.ndarray  # (3,) world point: every reachable ball centre lies ...
+    reach_radius: float  # ... within this distance of reach_centre (m)
+
+    @property
+    def dof(self) -> int:
+        return len(self.joint_names)
+
+
+@dataclass(frozen=True, eq=False)
+class Static:
+    """Collision primitives of the trunk (base, torso at its planning angle), in the world frame."""
+
+    box_names: tuple[str, ...]  # (K,)
+    box_X_W: np.ndarray  # (K, 4, 4) box centre poses
+    box_half: np.ndarray  # (K, 3) half extents (m)
+    cap_names: tuple[str, ...]  # (M,)
+    cap_a: np.ndarray  # (M, 3) world
+    cap_b: np.ndarray  # (M, 3) world
+    cap_r: np.ndarray  # (M,)
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Batched IK outcome. ``q (..., n)`` rad, ``ok (...)``, ``reason (...)`` one of ``IK_REASONS``,
+    ``err (...)`` m, the distance from the ball centre at ``q`` to its target."""
+
+    q: np.ndarray
+    ok: np.ndarray
+    reason: np.ndarray
+    err: np.ndarray
+
+
+@dataclass(frozen=True)
+class IKParams:
+    """Settings of the damped-least-squares position IK (documented defaults)."""
+
+    #: Iterations per attempt. Seeded from the library, most targets converge in 3-5.
+    max_iter: int = 20
+    #: Damping lambda (m) of ``J^T (J J^T + lambda^2 I)^-1``; small against the arm's 0.3-0.9 m lever
+    #: arms, large enough to keep steps bounded near singular (stretched) postures.
+    damping: float = 0.02
+    #: Fraction of the way to the rest posture taken in the null space per iteration, while the
+    #: error exceeds ``posture_fade`` (m); below it the pull fades quadratically.
+    posture_gain: float = 0.1
+    posture_fade: float = 0.02
+    #: Largest joint change per iteration (rad); the step is scaled down to respect it.
+    max_step: float = 0.5
+    #: Largest Cartesian error fed to one step (m); far targets are approached in several steps.
+    max_err_step: float = 0.15
+    #: Iterate until the error is below ``stop_fraction * tol``.
+    stop_fraction: float = 0.1
+    #: Seed library: self-collision-free postures sampled around the rest posture (plus uniform ones)
+    #: with their ball positions in a k-d tree. A target starts from the most comfortable (closest to
+    #: the rest posture) of its ``neighbours`` nearest entries that lie within ``seed_slack`` (m) of
+    #: the nearest; its restarts take the next ones. Seeding from comfortable, collision-free postures
+    #: is what keeps the solutions clear of the arm's own links: on grasp-like targets beside a box,
+    #: 100 % of solution pairs were collision-free this way against 47 % from the nearest entry of an
+    #: unfiltered library.
+    library_size: int = 10000
+    library_uniform: float = 0.3  # fraction drawn uniformly within the limits
+    library_sigma: float = 0.2  # std of the others, as a fraction of each joint's range
+    library_seed: int = 0
+    neighbours: int = 8
+    seed_slack: float = 0.05
+    restart_jitter: float = 0.3  # rad std of the jitter added to restart seeds
+    #: Worker threads for batches of at least ``threads * min_chunk`` targets (numpy releases the GIL
+    #: in its kernels). Two threads gained about a third on an idle 2-core machine with
+    #: ``retain_freed_memory`` in effect, and nothing or less when the other core was busy.
+    threads: int = 1
+    min_chunk: int = 4096
+
+
+@dataclass(frozen=True, eq=False)
+class Robot:
+    """A dual-arm robot with its trunk held still; build it with ``load_robot``."""
+
+    urdf_path: Path
+    X_WB: np.ndarray  # (4, 4) base link in the world
+    torso_angle: float
+    arms: dict[str, Arm]
+    static: Static
+    ik_params: IKParams = IKParams()
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def arm(self, arm: str) -> Arm:
+        try:
+            return self.arms[arm]
+        except KeyError:
+            raise ValueError(f"unknown arm {arm!r}; this robot has {sorted(self.arms)}") from None
+
+    # -- forward kinematics ------------------------------------------------------------------------
+
+    def fk(self, arm: str, q: np.ndarray) -> np.ndarray:
+        """World poses ``(N, L, 4, 4)`` of the arm's links (``Arm.link_names``) at ``q (N, n)``."""
+        a = self.arm(arm)
+        q = _check_q(a, q)
+        frames = _fk_frames(a, np.ascontiguousarray(q.T))
+        N, L = len(q), len(a.link_names)
+        X = np.zeros((N, L, 4, 4))
+        for k, (cols, p, _) in enumerate(frames):
+            for j in range(3):
+                X[:, k, :3, j] = cols[j].T
+            X[:, k, :3, 3] = p.T
+        X[:, :, 3, 3] = 1.0
+        return X
+
+    def eef_position(self, arm: str, q: np.ndarray) -> np.ndarray:
+        """Ball centres ``p_W (N, 3)`` (m) at ``q (N, n)``."""
+        a = self.arm(arm)
+        q = _check_q(a, q)
+        return np.array(_fk_frames(a, np.ascontiguousarray(q.T), upto=a.eef_index + 1)[-1][1].T, copy=True)
+
+    # -- inverse kinematics ------------------------------------------------------------------------
+
+    def ik(self, arm: str, p_W: np.ndarray, q_seed: np.ndarray | None = None,
+           rng: np.random.Generator | None = None, restarts: int = 3, tol: float = 1e-3) -> IKResult:
+        """Joint vectors that put the ball centre of ``arm`` on the targets ``p_W (N, 3)`` (m).
+
+        Damped least squares on all targets at once, with the rest posture as a null-space objective
+        and joint limits enforced by projection after every step. Targets farther than
+        ``Arm.reach_radius`` from ``Arm.reach_centre`` are ``ik_unreachable`` at once. The first
+        attempt starts from ``q_seed (N, n)`` when given, else from the most comfortable of the
+        nearby seed-library postures (see ``IKParams``); targets still failing get up to ``restarts``
+        more attempts from the next library postures plus a jitter drawn from ``rng``. The result of
+        a target depends only on the target, its seed and ``rng``'s state, not on the rest of the
+        batch.
+
+        Returns ``IKResult`` with ``q (N, n)`` (the best attempt, always within limits),
+        ``ok = err <= tol``, ``reason``: ``"ok"``, ``"ik_unreachable"`` or ``"joint_limit"`` (failed
+        while a joint sat on a limit), and ``err (N,)`` m.
+        """
+        a = self.arm(arm)
+        p_W = _check_points(p_W)
+        N, n = len(p_W), a.dof
+        if q_seed is not None:
+            q_seed = np.clip(_check_q(a, q_seed, N), a.lower, a.upper)
+        if rng is None:
+            rng = np.random.default_rng(0)
+        prm = self.ik_params
+        # Drawn before anything else and with a size independent of N, so that a target's result
+        # does not depend on its batch.
+        jitter = rng.normal(0.0, prm.restart_jitter, (max(restarts, 0), n))
+        q = np.broadcast_to(a.q_rest, (N, n)).copy()
+        err = np.full(N, np.inf)
+        reach = np.linalg.norm(p_W - a.reach_centre, axis=1) <= a.reach_radius
+        idx = np.flatnonzero(reach)
+        if len(idx):
+            q_lib, cost_lib, tree = self._library(arm)
+            k = min(prm.neighbours, len(q_lib))
+            d, nn = tree.query(p_W[idx], k=k, workers=prm.threads)
+            d, nn = d.reshape(len(idx), k), nn.reshape(len(idx), k)
+            # Rank each target's neighbours: within seed_slack of the nearest first, then by comfort.
+            cost = cost_lib[nn] + np.where(d > d[:, :1] + prm.seed_slack, 1e6, 0.0)
+            ranked = np.take_along_axis(nn, np.argsort(cost, axis=1, kind="stable"), axis=1)
+            seed = q_seed[idx] if q_seed is not None else q_lib[ranked[:, 0]]
+            first = 0 if q_seed is not None else 1
+            q[idx], err[idx] = self._solve_parallel(a, p_W[idx], seed, tol)
+            for r in range(restarts):
+                still = err[idx] > tol
+                if not still.any():
+                    break
+                sub = idx[still]
+                seed = np.clip(q_lib[ranked[still, (first + r) % k]] + jitter[r], a.lower, a.upper)
+                q_r, err_r = self._solve_parallel(a, p_W[sub], seed, tol)
+                better = err_r < err[sub]
+                q[sub[better]], err[sub[better]] = q_r[better], err_r[better]
+        far = ~reach
+        if far.any():  # not attempted: report the distance from the rest posture's ball
+            err[far] = np.linalg.norm(p_W[far] - self.eef_position(arm, q[far]), axis=1)
+        ok = err <= tol
+        at_limit = np.any((q <= a.lower + 1e-9) | (q >= a.upper - 1e-9), axis=1)
+        code = np.where(ok, 0, np.where(reach & at_limit, 2, 1))
+        return IKResult(q=q, ok=ok, reason=np.asarray(IK_REASONS)[code], err=err)
+
+    def ik_trajectory(self, arm: str, p_W: np.ndarray, q0: np.ndarray, tol: float = 1e-3,
+                      max_joint_step: float = 0.5) -> IKResult:
+        """Continuous joint paths through a sequence of targets.
+
+        ``p_W (T, 3)`` with ``q0 (n,)``, or ``p_W (T, N, 3)`` with ``q0 (N, n)`` for N paths at once.
+        Each step is seeded with the previous step's solution and never restarted, so the path stays
+        on one IK branch; a step whose largest joint change exceeds ``max_joint_step`` (rad) is marked
+        ``"joint_jump"``. Returns ``IKResult`` with ``q (T, [N,] n)`` and the rest ``(T, [N])``.
+        """
+        a = self.arm(arm)
+        p_W = np.asarray(p_W, dtype=float)
+        single = p_W.ndim == 2
+        if single:
+            p_W = p_W[:, None, :]
+            q0 = np.asarray(q0, dtype=float)[None, :]
+        if p_W.ndim != 3 or p_W.shape[2] != 3:
+            raise ValueError(f"p_W must be (T, 3) or (T, N, 3), got {p_W.shape}")
+        T, N, n = p_W.shape[0], p_W.shape[1], a.dof
+        q_prev = np.clip(_check_q(a, q0, N), a.lower, a.upper)
+        q = np.zeros((T, N, n))
+        err = np.zeros((T, N))
+        code = np.zeros((T, N), dtype=int)
+        for t in range(T):
+            q_t, err_t = _dls(a, _check_points(p_W[t]), q_prev, tol, self.ik_params)
+            jump = np.max(np.abs(q_t - q_prev), axis=1, initial=0.0) > max_joint_step
+            at_limit = np.any((q_t <= a.lower + 1e-9) | (q_t >= a.upper - 1e-9), axis=1)
+            code[t] = np.where(err_t > tol, np.where(at_limit, 2, 1), np.where(jump, 3, 0))
+            q[t], err[t], q_prev = q_t, err_t, q_t
+        res = IKResult(q=q, ok=code == 0, reason=np.asarray(IK_REASONS)[code], err=err)
+        if single:
+            res = IKResult(q=res.q[:, 0], ok=res.ok[:, 0], reason=res.reason[:, 0], err=res.err[:, 0])
+        return res
+
+    def _solve_parallel(self, a: Arm, p: np.ndarray, seed: np.ndarray, tol: float):
+        prm = self.ik_params
+        chunks = min(prm.threads, len(p) // prm.min_chunk)
+        if chunks <= 1:
+            return _dls(a, p, seed, tol, prm)
+        parts = np.array_split(np.arange(len(p)), chunks)
+        with ThreadPoolExecutor(chunks) as pool:
+            out = list(pool.map(lambda s: _dls(a, p[s], seed[s], tol, prm), parts))
+        return np.concatenate([o[0] for o in out]), np.concatenate([o[1] for o in out])
+
+    def _library(self, arm: str):
+        """Seed library of ``arm``: postures ``(M, n)``, their distance from the rest posture ``(M,)``
+        (rms rad) and a k-d tree of their ball centres. Postures in collision with the arm itself, the
+        trunk or the other arm at rest are left out."""
+        key = ("library", arm)
+        if key not in self._cache:
+            a, prm = self.arm(arm), self.ik_params
+            rng = np.random.default_rng(prm.library_seed)
+            M = prm.library_size
+            n_uni = int(round(prm.library_uniform * M))
+            span = a.upper - a.lower
+            near = a.q_rest + rng.normal(0.0, prm.library_sigma, (M - n_uni, a.dof)) * span
+            uni = rng.uniform(a.lower, a.upper, (n_uni, a.dof))
+            q = np.clip(np.concatenate([near, uni]), a.lower, a.upper)
+            other = next(b for name, b in self.arms.items() if name != arm)
+            rest = np.broadcast_to(other.q_rest, (M, other.dof))
+            check = make_collision_fn(self)
+            q = q[check(q, rest)[0] if arm == "left" else check(rest, q)[0]]
+            cost = np.sqrt(np.mean((q - a.q_rest) ** 2, axis=1))
+            self._cache[key] = (q, cost, cKDTree(self.eef_position(arm, q)))
+        return self._cache[key]
+
+
+def _check_q(a: Arm, q: np.ndarray, n_rows: int | None = None) -> np.ndarray:
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 2 or q.shape[1] != a.dof or (n_rows is not None and len(q) != n_rows):
+        want = f"({n_rows if n_rows is not None else 'N'}, {a.dof})"
+        raise ValueError(f"joint vectors for arm {a.name!r} must be {want}, got {q.shape}")
+    return q
+
+
+def _check_points(p: np.ndarray) -> np.ndarray:
+    p = np.asarray(p, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {p.shape}")
+    return p
+
+
+# ----------------------------------------------------------------------------------------------------
+# Kinematic kernels. Arrays are component-major, ``(3, m)`` for m rows, so that every numpy call works
+# on contiguous rows. A rotation is kept as its three columns, so that the constant joint origins (signed
+# permutations for the SDA5F) cost a relabelling instead of a matrix product.
+
+
+def _combine(cols, w: np.ndarray):
+    """``sum_i w[i] * cols[i]`` skipping structural zeros and multiplications by +-1."""
+    out = None
+    for i in range(3):
+        wi = w[i]
+        if abs(wi) < _ZERO:
+            continue
+        term = cols[i] if wi == 1.0 else (-cols[i] if wi == -1.0 else wi * cols[i])
+        out = term if out is None else out + term
+    return out if out is not None else np.zeros_like(cols[0])
+
+
+def _fk_frames(a: Arm, qT: np.ndarray, upto: int | None = None, keep_rot: bool = True):
+    """Per frame ``(cols, p, w)`` for joint vectors ``qT (n, m)``: rotation columns ``3 x (3, m)``,
+    origin ``(3, m)`` and, for a movable joint, its world axis ``(3, m)`` (else None); the first
+    ``upto`` frames."""
+    m = qT.shape[1]
+    cols = [np.broadcast_to(a.X_WR[:3, j, None], (3, m)) for j in range(3)]
+    p = np.broadcast_to(a.X_WR[:3, 3, None], (3, m))
+    out = []
+    for k in range(len(a.link_names) if upto is None else upto):
+        t = a.origin_t[k]
+        if np.any(t != 0.0):
+            p = p + _combine(cols, t)
+        A = a.origin_R[k]
+        if not np.array_equal(A, np.eye(3)):
+            cols = [_combine(cols, A[:, j]) for j in range(3)]
+        w = None
+        j = a.joint[k]
+        if j >= 0:
+            ax = a.axis[k]
+            w = _combine(cols, ax)
+            if abs(abs(ax[2]) - 1.0) < _ZERO:  # +-z: rotate columns 0 and 1
+                ang = qT[j] if ax[2] > 0 else -qT[j]
+                c, s = np.cos(ang), np.sin(ang)
+                cols = [c * cols[0] + s * cols[1], c * cols[1] - s * cols[0], cols[2]]
+            else:  # general axis: R @ (I + s K + (1 - c) K K), column by column
+                K = se3.skew(ax)
+                c, s = np.cos(qT[j]), np.sin(qT[j])
+                Kc = [_combine(cols, K[:, i]) for i in range(3)]
+                KKc = [_combine(Kc, K[:, i]) for i in range(3)]
+                cols = [cols[i] + s * Kc[i] + (1.0 - c) * KKc[i] for i in range(3)]
+        out.append((cols if keep_rot else None, p, w))
+    return out
+
+
+def _dls(a: Arm, p_T: np.ndarray, q0: np.ndarray, tol: float, prm: IKParams):
+    """Damped least squares from ``q0 (M, n)`` towards ``p_T (M, 3)``; returns ``q (M, n)``, ``err (M,)``.
+
+    Step ``dq = J^+ (e - J z) + z`` with ``J^+ = J^T (J J^T + lambda^2 I)^-1`` and the posture pull
+    ``z = gain (q_rest - q)``: the task error e is met first and z acts in the null space of J. A
+    null-space step still moves the ball to second order, so the pull fades as the error shrinks
+    (``gain * min(1, e / posture_fade)^2``) and the last iterations are plain Gauss-Newton. Rows leave
+    the active set once converged, so stragglers cost only their own work.
+    """
+    M, n = q0.shape
+    q = np.array(q0, dtype=float).T.copy()  # (n, M)
+    err = np.full(M, np.inf)
+    if M == 0:
+        return q.T, err
+    stop = prm.stop_fraction * tol
+    lam2 = prm.damping ** 2
+    lo, hi, rest = a.lower[:, None], a.upper[:, None], a.q_rest[:, None]
+    joint_frames = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    act = np.arange(M)
+    qa, pa = q, np.ascontiguousarray(p_T.T)
+    free = None  # (n, m) bool: 1 where the joint may move this step
+    for it in range(prm.max_iter + 1):
+        frames = _fk_frames(a, qa, upto=a.eef_index + 1, keep_rot=False)
+        e = pa - frames[-1][1]  # (3, m)
+        ea = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+        q[:, act], err[act] = qa, ea
+        keep = ea >= stop
+        if it == prm.max_iter or not keep.any():
+            break
+        # Jacobian J (3, n, m): column j is w_j x (p_e - p_j), computed for all active rows (the few
+        # converged ones are dropped after the step: cheaper than compacting every frame).
+        W = np.stack([frames[k][2] for k in joint_frames], axis=1)  # (3, n, m)
+        D = frames[-1][1][:, None, :] - np.stack([frames[k][1] for k in joint_frames], axis=1)
+        Jx = W[1] * D[2] - W[2] * D[1]
+        Jy = W[2] * D[0] - W[0] * D[2]
+        Jz = W[0] * D[1] - W[1] * D[0]
+        if free is not None:  # joints the last step pushed into a limit sit this step out
+            Jx *= free
+            Jy *= free
+            Jz *= free
+        scale = np.minimum(1.0, prm.max_err_step / np.maximum(ea, 1e-300))
+        fade = prm.posture_gain * np.minimum(1.0, ea / prm.posture_fade) ** 2
+        z = fade * (rest - qa)  # (n, m)
+        v0 = e[0] * scale - np.einsum("jm,jm->m", Jx, z)
+        v1 = e[1] * scale - np.einsum("jm,jm->m", Jy, z)
+        v2 = e[2] * scale - np.einsum("jm,jm->m", Jz, z)
+        # (J J^T + lambda^2 I) y = v, symmetric 3 x 3 solved by its adjugate.
+        axx = np.einsum("jm,jm->m", Jx, Jx) + lam2
+        ayy = np.einsum("jm,jm->m", Jy, Jy) + lam2
+        azz = np.einsum("jm,jm->m", Jz, Jz) + lam2
+        axy = np.einsum("jm,jm->m", Jx, Jy)
+        axz = np.einsum("jm,jm->m", Jx, Jz)
+        ayz = np.einsum("jm,jm->m", Jy, Jz)
+        cxx, cyy, czz = ayy * azz - ayz * ayz, axx * azz - axz * axz, axx * ayy - axy * axy
+        cxy, cxz, cyz = axz * ayz - axy * azz, axy * ayz - axz * ayy, axy * axz - axx * ayz
+        inv_det = 1.0 / (axx * cxx + axy * cxy + axz * cxz)
+        y0 = (cxx * v0 + cxy * v1 + cxz * v2) * inv_det
+        y1 = (cxy * v0 + cyy * v1 + cyz * v2) * inv_det
+        y2 = (cxz * v0 + cyz * v1 + czz * v2) * inv_det
+        dq = Jx * y0 + Jy * y1 + Jz * y2 + z
+        big = np.max(np.abs(dq), axis=0)
+        dq *= np.minimum(1.0, prm.max_step / np.maximum(big, 1e-300))
+        qa = qa + dq
+        free = ((qa > lo) | (dq > 0)) & ((qa < hi) | (dq < 0))
+        qa = np.clip(qa, lo, hi)
+        if not keep.all():
+            act, qa, pa, free = act[keep], qa[:, keep], pa[:, keep], free[:, keep]
+    return q.T.copy(), err
+
+
+# ----------------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
+               eef_links: tuple[str, str] = ("left_ball", "right_ball"), torso_angle: float = 0.0,
+               q_rest: np.ndarray | None = None, ik_params: IKParams | None = None) -> Robot:
+    """Read a dual-arm URDF into a ``Robot`` with arms ``"left"`` and ``"right"``.
+
+    Parameters
+    ----------
+    urdf_path : path of the URDF file.
+    X_WB : (4, 4) pose of the URDF root link in the world (default identity).
+    eef_links : the left and right end-effector (ball) link names.
+    torso_angle : rad; every movable joint shared by both arms (the torso) is held at this angle.
+    q_rest : (n,) rest posture for both arms, the IK's secondary objective (default ``SDA5F_REST`` for
+        7-joint arms, else mid-range), clipped into the limits.
+    ik_params : IK settings (default ``IKParams()``).
+    """
+    path = Path(urdf_path)
+    links, joints = _parse_urdf(path)
+    X_WB = np.eye(4) if X_WB is None else np.asarray(X_WB, dtype=float)
+    if X_WB.shape != (4, 4) or not np.all(np.isfinite(X_WB)):
+        raise InputError(f"{path}: the base pose must be a finite (4, 4) transform")
+
+    def path_to(link: str) -> list[str]:
+        if link not in links:
+            raise InputError(f"{path}: end-effector link {link!r} is not in the URDF")
+        chain = [link]
+        while chain[-1] in joints:
+            chain.append(joints[chain[-1]].parent)
+            if len(chain) > len(links):
+                raise InputError(f"{path}: the joint tree has a cycle")
+        return chain[::-1]  # root first
+
+    paths = [path_to(e) for e in eef_links]
+    if paths[0][0] != paths[1][0]:
+        raise InputError(f"{path}: the two end-effectors are not in one tree")
+    n_common = 0
+    while n_common < min(map(len, paths)) and paths[0][n_common] == paths[1][n_common]:
+        n_common += 1
+    if n_common == min(map(len, paths)):
+        raise InputError(f"{path}: one end-effector link lies on the other's chain")
+    trunk = set(paths[0][:n_common])
+
+    # World pose of every static link: reached from the root through fixed joints or trunk joints.
+    X_W = {paths[0][0]: X_WB}
+    arm_links = set(paths[0][n_common:]) | set(paths[1][n_common:])
+    pending = [paths[0][0]]
+    while pending:
+        parent = pending.pop()
+        for child, jt in joints.items():
+            if jt.parent != parent or child in arm_links:
+                continue
+            if jt.kind != "fixed" and child not in trunk:
+                continue  # a movable branch that is neither trunk nor arm: ignored
+            X = X_W[parent] @ jt.X_PC
+            if jt.kind != "fixed":
+                if not jt.lower <= torso_angle <= jt.upper:
+                    raise InputError(f"{path}: torso angle {torso_angle} rad is outside joint {jt.name}'s "
+                                     f"limits [{jt.lower}, {jt.upper}]")
+                X = X @ se3.make_transform(se3.rotation_about_axis(jt.axis, torso_angle), np.zeros(3))
+            X_W[child] = X
+            pending.append(child)
+
+    arms = {}
+    for name, chain in zip(("left", "right"), paths, strict=True):
+        arms[name] = _make_arm(path, name, chain[n_common - 1], chain[n_common:], links, joints, X_W,
+                               q_rest)
+    if arms["left"].dof != arms["right"].dof:
+        raise InputError(f"{path}: the arms have {arms['left'].dof} and {arms['right'].dof} joints")
+
+    static = _make_static(path, links, X_W, arm_links)
+    robot = Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
+                  ik_params=ik_params or IKParams())
+    return robot
+
+
+def _make_arm(path, name, root, chain, links, joints, X_W, q_rest) -> Arm:
+    L = len(chain)
+    origin_R, origin_t = np.zeros((L, 3, 3)), np.zeros((L, 3))
+    joint, axis = np.full(L, -1), np.zeros((L, 3))
+    jn, lo, hi, vel = [], [], [], []
+    for k, link in enumerate(chain):
+        jt = joints[link]
+        origin_R[k], origin_t[k] = jt.X_PC[:3, :3], jt.X_PC[:3, 3]
+        if jt.kind != "fixed":
+            joint[k] = len(jn)
+            axis[k] = jt.axis
+            jn.append(jt.name)
+            lo.append(jt.lower)
+            hi.append(jt.upper)
+            vel.append(jt.velocity)
+    if not jn:
+        raise InputError(f"{path}: the {name} arm has no movable joint")
+    lower, upper = np.array(lo), np.array(hi)
+    if q_rest is None:
+        q_rest = np.array(SDA5F_REST) if len(jn) == len(SDA5F_REST) else (lower + upper) / 2
+    q_rest = np.asarray(q_rest, dtype=float)
+    if q_rest.shape != (len(jn),):
+        raise InputError(f"{path}: the rest posture needs {len(jn)} joint values, got {q_rest.shape}")
+    q_rest = np.clip(q_rest, lower, upper)
+
+    cap_link, cap_a, cap_b, cap_r, cap_names = [], [], [], [], []
+    for k, link in enumerate(chain):
+        for g in links[link]:
+            if g.kind != "capsule":
+                raise InputError(f"{path}: link {link} of the {name} arm has a box collision; moving links "
+                                 "take capsules, cylinders or spheres")
+            cap_link.append(k)
+            cap_a.append(g.dims[:3])
+            cap_b.append(g.dims[3:6])
+            cap_r.append(g.dims[6])
+            cap_names.append(link)
+
+    # Reach bound: the ball's distance from joint 2's origin depends on the later joints only and is
+    # at most the sum of the later origin offsets plus the end-effector offset (triangle inequality).
+    # Joint 2's origin moves on a circle about joint 1's axis, so centre the bound on that axis.
+    movable = [k for k in range(L) if joint[k] >= 0]
+    eef = L - 1
+    arm = Arm(name=name, joint_names=tuple(jn), link_names=tuple(chain), eef_index=eef, X_WR=X_W[root],
+              origin_R=origin_R, origin_t=origin_t, joint=joint, axis=axis, lower=lower, upper=upper,
+              velocity=np.array(vel), q_rest=q_rest, cap_link=np.array(cap_link, dtype=int),
+              cap_a=np.array(cap_a).reshape(-1, 3), cap_b=np.array(cap_b).reshape(-1, 3),
+              cap_r=np.array(cap_r), cap_names=tuple(cap_names), reach_centre=np.zeros(3),
+              reach_radius=math.inf)
+    if len(movable) >= 2:
+        k1, k2 = movable[0], movable[1]
+        X0 = _fk_frames(arm, q_rest[:, None], upto=k2 + 1)
+        p1, w1, p2 = X0[k1][1][:, 0], X0[k1][2][:, 0], X0[k2][1][:, 0]
+        foot = p1 + np.dot(p2 - p1, w1) * w1  # joint 2's origin projected on joint 1's axis
+        reach = np.linalg.norm(p2 - foot) + float(np.sum(np.linalg.norm(origin_t[k2 + 1:], axis=1)))
+        arm = replace(arm, reach_centre=foot, reach_radius=reach + 1e-6)
+    return arm
+
+
+def _make_static(path, links, X_W, arm_links) -> Static:
+    bn, bX, bh, cn, ca, cb, cr = [], [], [], [], [], [], []
+    for link, X in X_W.items():
+        if link in arm_links:
+            continue
+        for g in links[link]:
+            if g.kind == "box":
+                bn.append(link)
+                bX.append(X @ g.X_LG)
+                bh.append(g.dims)
+            else:
+                cn.append(link)
+                ca.append(se3.transform_points(X, g.dims[:3]))
+                cb.append(se3.transform_points(X, g.dims[3:6]))
+                cr.append(g.dims[6])
+    return Static(box_names=tuple(bn), box_X_W=np.array(bX).reshape(-1, 4, 4),
+                  box_half=np.array(bh).reshape(-1, 3), cap_names=tuple(cn),
+                  cap_a=np.array(ca).reshape(-1, 3), cap_b=np.array(cb).reshape(-1, 3), cap_r=np.array(cr))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Collision kernels. Segments and points are component-major ``(3, K)``; every kernel returns ``(K,)``.
+
+
+def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _seg_seg_dist2(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Squared distances between segments ``p1 -> q1`` and ``p2 -> q2`` (closest points clamped to
+    both segments; degenerate segments are points)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = _dot(d1, d1), _dot(d2, d2), _dot(d2, r)
+    c, b = _dot(d1, r), _dot(d1, d2)
+    tiny = 1e-18
+    a_ok, e_ok = a > tiny, e > tiny
+    denom = a * e - b * b
+    # s on segment 1 minimizing the distance between the infinite lines, clamped; 0 when parallel.
+    s = np.where(denom > tiny * np.maximum(a * e, tiny),
+                 np.clip((b * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0), 0.0)
+    t = (b * s + f) / np.where(e_ok, e, 1.0)
+    # t out of [0, 1]: clamp it and recompute s for the clamped t.
+    a_safe = np.where(a_ok, a, 1.0)
+    s = np.where(t < 0.0, np.clip(-c / a_safe, 0.0, 1.0), np.where(t > 1.0, np.clip((b - c) / a_safe, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    # Degenerate cases: segment 2 a point (t = 0), segment 1 a point (s = 0).
+    s = np.where(e_ok, s, np.clip(-c / a_safe, 0.0, 1.0))
+    t = np.where(e_ok, t, 0.0)
+    t = np.where(a_ok, t, np.clip(f / np.where(e_ok, e, 1.0), 0.0, 1.0) * e_ok)
+    s = np.where(a_ok, s, 0.0)
+    diff = (p1 + d1 * s) - (p2 + d2 * t)
+    return _dot(diff, diff)
+
+
+def _point_box_dist2(p: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Squared distances from points ``p (3, K)`` (box frame) to the box ``|x_i| <= h_i``."""
+    ex = np.maximum(np.abs(p) - h, 0.0)
+    return _dot(ex, ex)
+
+
+def _seg_box_dist2(a: np.ndarray, b: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Squared distances from segments ``a -> b (3, K)`` (box frame) to the boxes ``|x_i| <= h_i``.
+
+    ``g(t) = |p(t) - clamp(p(t))|^2`` is convex and piecewise quadratic in the segment parameter t,
+    with breakpoints where a coordinate crosses a face plane; its derivative ``g'`` is continuous,
+    piecewise linear and non-decreasing. The minimizer is 0, 1 or the zero of ``g'`` found by linear
+    interpolation between the two sorted breakpoints that bracket it: exact, no iteration.
+    """
+    u = b - a
+    K = a.shape[1]
+    h = np.broadcast_to(h, a.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tb = np.concatenate([(h - a) / u, (-h - a) / u], axis=0)  # (6, K)
+    tb = np.where(np.isfinite(tb), np.clip(tb, 0.0, 1.0), 0.0)
+    T = np.sort(np.concatenate([np.zeros((1, K)), tb, np.ones((1, K))], axis=0), axis=0)  # (8, K)
+
+    def slope(t):  # g'(t) / 2 for t (J, K)
+        p = a[:, None, :] + u[:, None, :] * t[None]
+        ex = p - np.clip(p, -h[:, None, :], h[:, None, :])
+        return np.sum(ex * u[:, None, :], axis=0)
+
+    g = slope(T)
+    j = np.argmax(g >= 0.0, axis=0)  # first breakpoint with g' >= 0 (0 if none: handled below)
+    cols = np.arange(K)
+    t_hi, g_hi = T[j, cols], g[j, cols]
+    t_lo, g_lo = T[np.maximum(j - 1, 0), cols], g[np.maximum(j - 1, 0), cols]
+    span = g_hi - g_lo
+    t = np.where(span > 0, t_lo + (t_hi - t_lo) * (-g_lo) / np.where(span > 0, span, 1.0), t_hi)
+    t = np.where(g[-1] < 0.0, 1.0, np.where(g[0] >= 0.0, 0.0, t))
+    return _point_box_dist2(a + u * t, h)
+
+
+def _point_cyl_dist(p: np.ndarray, radius: float, half_h: float) -> np.ndarray:
+    """Distances from points ``p (3, K)`` (cylinder frame, axis z, centred) to a solid cylinder."""
+    er = np.maximum(np.sqrt(p[0] * p[0] + p[1] * p[1]) - radius, 0.0)
+    ez = np.maximum(np.abs(p[2]) - half_h, 0.0)
+    return np.sqrt(er * er + ez * ez)
+
+
+def _seg_cyl_dist(a: np.ndarray, b: np.ndarray, radius: float, half_h: float, iters: int = 48) -> np.ndarray:
+    """Distances from segments ``a -> b (3, K)`` (cylinder frame) to a solid cylinder.
+
+    The distance to a convex set is convex along the segment: golden-section search, whose bracket
+    shrinks by 0.618 a step (48 steps: 1e-10 of the segment length).
+    """
+    u = b - a
+    lo, hi = np.zeros(a.shape[1]), np.ones(a.shape[1])
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+    f1, f2 = _point_cyl_dist(a + u * x1, radius, half_h), _point_cyl_dist(a + u * x2, radius, half_h)
+    for _ in range(iters):
+        left = f1 <= f2  # the minimum lies in [lo, x2]
+        hi = np.where(left, x2, hi)
+        lo = np.where(left, lo, x1)
+        x_new = np.where(left, hi - g * (hi - lo), lo + g * (hi - lo))
+        f_new = _point_cyl_dist(a + u * x_new, radius, half_h)
+        x1, x2, f1, f2 = (np.where(left, x_new, x2), np.where(left, x1, x_new),
+                          np.where(left, f_new, f2), np.where(left, f1, f_new))
+    ends = np.minimum(_point_cyl_dist(a, radius, half_h), _point_cyl_dist(b, radius, half_h))
+    return np.minimum(np.minimum(f1, f2), ends)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Collision checking
+
+
+@dataclass(frozen=True, eq=False)
+class _Mesh:
+    """A triangle mesh for collision: python-fcl BVH plus the numpy pre-filters (in the mesh frame)."""
+
+    fcl_obj: object  # fcl.CollisionObject at the identity
+    centre: np.ndarray  # (3,) bounding-sphere centre
+    radius: float  # bounding-sphere radius
+    planes: np.ndarray  # (F, 4) convex-hull face planes n . x <= d, unit n
+    convex: bool  # the mesh is its own convex hull
+    mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
+
+
+def _make_mesh(mesh, where: str) -> _Mesh:
+    import fcl
+    import trimesh
+
+    if not isinstance(mesh, trimesh.Trimesh):
+        try:
+            v, f = mesh
+            mesh = trimesh.Trimesh(np.asarray(v, dtype=float), np.asarray(f, dtype=np.int64), process=False)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{where}: expected a trimesh.Trimesh or (vertices, faces)") from exc
+    if len(mesh.faces) == 0:
+        raise InputError(f"{where}: the mesh has no faces")
+    v = np.asarray(mesh.vertices, dtype=float)
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(v), len(mesh.faces))
+    bvh.addSubModel(v, np.asarray(mesh.faces, dtype=np.int32))
+    bvh.endModel()
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = (lo + hi) / 2
+    hull = mesh.convex_hull
+    n = np.asarray(hull.face_normals)
+    d = np.einsum("ij,ij->i", n, hull.triangles[:, 0])
+    planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
+    convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
+    return _Mesh(fcl_obj=fcl.CollisionObject(bvh, fcl.Transform()), centre=centre,
+                 radius=float(np.linalg.norm(v - centre, axis=1).max()), planes=planes, convex=convex,
+                 mesh=mesh)
+
+
+def _capsules_W(a: Arm, qT: np.ndarray):
+    """World endpoints ``A, B (3, C, m)`` of the arm's collision capsules at ``qT (n, m)``."""
+    frames = _fk_frames(a, qT)
+    C, m = len(a.cap_names), qT.shape[1]
+    A, B = np.empty((3, C, m)), np.empty((3, C, m))
+    for c, k in enumerate(a.cap_link):
+        cols, p, _ = frames[k]
+        A[:, c] = p + _combine(cols, a.cap_a[c])
+        B[:, c] = p + _combine(cols, a.cap_b[c])
+    return A, B
+
+
+def _rigid_groups(a: Arm) -> np.ndarray:
+    """Per frame of the arm: index of its rigid group (frames joined by fixed joints share one)."""
+    return np.cumsum(a.joint >= 0) - 1
+
+
+def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Points ``P (3, ...)`` expressed in a frame whose inverse pose is ``X_inv (4, 4)``."""
+    t = X_inv[:3, 3].reshape((3,) + (1,) * (P.ndim - 1))
+    if np.array_equal(X_inv[:3, :3], np.eye(3)):  # axis-aligned boxes (the table, the trunk)
+        return P + t
+    return np.tensordot(X_inv[:3, :3], P, axes=1) + t
+
+
+def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), object_mesh=None,
+                      margin: float = 0.0, table_depth: float = 1.0) -> CollisionFn:
+    """Build a batched collision checker for both arms of ``robot`` in a scene (paper §4.2).
+
+    Parameters
+    ----------
+    robot : the robot (its trunk held at ``robot.torso_angle``).
+    table : ``(size_xy, top_z)``: a box of footprint ``size_xy = (sx, sy)`` m centred on the world
+        origin, from ``top_z - table_depth`` up to ``top_z`` (everything under the top counts as
+        table). None: no table.
+    obstacles : sequence of ``(kind, dims, X_W)`` or ``(kind, dims, X_W, name)``; kind ``"box"``
+        (dims: full size ``(sx, sy, sz)``), ``"cylinder"`` (``(radius, height)``, axis z),
+        ``"sphere"`` (``(radius,)``), ``"capsule"`` (``(radius, length)``, axis z) or ``"mesh"``
+        (a trimesh.Trimesh or ``(vertices, faces)`` in its own frame); ``X_W (4, 4)`` its pose.
+        Names default to ``obstacle_<i>``.
+    object_mesh : trimesh.Trimesh of the object in its frame O, or None.
+    margin : m; primitives closer than this count as colliding.
+
+    Returns
+    -------
+    A ``CollisionFn``: ``check(q_left (N, n), q_right (N, n), X_WO (N, 4, 4) | None = None,
+    touching (N, 2) bool | None = None) -> (ok (N,) bool, reason (N,) str)``.
+    """
+    return CollisionFn(robot, table, obstacles, object_mesh, margin, table_depth)
+
+
+class CollisionFn:
+    """Batched collision test of both arms against the table, obstacles, the trunk, each other and
+    the object; see ``make_collision_fn``.
+
+    Calling it with ``q_left, q_right (N, n)``, optional object poses ``X_WO (N, 4, 4)`` and
+    ``touching (N, 2)`` (the left/right ball is in contact with the object, so that ball, and only
+    the ball, is exempt from the object test) returns ``ok (N,)`` and ``reason (N,)``. A reason names
+    the first colliding pair found, in this order: ``env_collision:<link>/table``,
+    ``env_collision:<link>/<obstacle>``, ``self_collision:<link>/<trunk link>``,
+    ``self_collision:<left link>/<right link>``, ``self_collision:<link>/<link>`` (one arm),
+    ``env_collision:<link>/object``; ``"ok"`` when free. Each stage only looks at the rows still free.
+
+    The self-collision pairs left out are described in ``_self_pairs`` (adjacent links, pairs
+    touching at ``q = 0``, pairs that stay apart over random postures). The ball's contact with the
+    object is taken as given: the contact sampler checks the ball itself. Everything is numpy over
+    all rows and candidate pairs at once, each test behind a bounding-sphere (or bounding-box)
+    pre-filter; python-fcl is called only for capsules near a mesh that no hull plane separates.
+    """
+
+    def __init__(self, robot: Robot, table, obstacles, object_mesh, margin: float, table_depth: float):
+        self.arms = (robot.arm("left"), robot.arm("right"))
+        self.static = st = robot.static
+        self.margin = float(margin)
+        self.boxes, self.caps, self.cyls, self.meshes = [], [], [], []
+        if table is not None:
+            (sx, sy), top_z = table
+            X = se3.make_transform(np.eye(3), [0.0, 0.0, top_z - table_depth / 2])
+            self.boxes.append(("table", se3.invert(X), np.array([sx / 2, sy / 2, table_depth / 2])))
+        for i, ob in enumerate(obstacles):
+            kind, dims, X_W = ob[0], ob[1], np.asarray(ob[2], dtype=float)
+            name = ob[3] if len(ob) > 3 else f"obstacle_{i}"
+            if X_W.shape != (4, 4):
+                raise InputError(f"obstacle {name}: the pose must be a (4, 4) transform")
+            if kind == "box":
+                self.boxes.append((name, se3.invert(X_W), np.asarray(dims, dtype=float).reshape(3) / 2))
+            elif kind == "cylinder":
+                self.cyls.append((name, se3.invert(X_W), float(dims[0]), float(dims[1]) / 2))
+            elif kind in ("sphere", "capsule"):
+                h = float(dims[1]) / 2 if kind == "capsule" else 0.0
+                a, b = se3.transform_points(X_W, np.array([[0, 0, -h], [0, 0, h]]))
+                self.caps.append((name, a, b, float(dims[0])))
+            elif kind == "mesh":
+                self.meshes.append((name, se3.invert(X_W), _make_mesh(dims, f"obstacle {name}")))
+            else:
+                raise InputError(f"obstacle {name}: unknown kind {kind!r} (box, cylinder, sphere, capsule, "
+                                 "mesh)")
+        self.object = None if object_mesh is None else _make_mesh(object_mesh, "object mesh")
+        # Bounding-sphere radius of each capsule (its segment does not change length), (C, 1).
+        self.rho = [(np.linalg.norm(a.cap_b - a.cap_a, axis=1) / 2 + a.cap_r)[:, None] for a in self.arms]
+
+        self.box_inv = (np.stack([se3.invert(X) for X in st.box_X_W]) if len(st.box_X_W)
+                        else np.zeros((0, 4, 4)))
+        self.trunk_box_pairs, self.trunk_cap_pairs, self.intra_pairs, self.lr_pairs = _self_pairs(robot)
+
+    def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
+                 touching: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        arms, mg = self.arms, self.margin
+        qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
+        N = len(qs[0])
+        if X_WO is not None:
+            X_WO = np.asarray(X_WO, dtype=float)
+            if X_WO.shape != (N, 4, 4):
+                raise ValueError(f"X_WO must be ({N}, 4, 4), got {X_WO.shape}")
+        touch = np.zeros((N, 2), bool) if touching is None else np.asarray(touching, dtype=bool)
+        if touch.shape != (N, 2):
+            raise ValueError(f"touching must be ({N}, 2), got {touch.shape}")
+        st = _Rows(N)
+        ends = [_capsules_W(a, np.ascontiguousarray(q.T)) for a, q in zip(arms, qs, strict=True)]
+        mids = [(A + B) / 2 for A, B in ends]
+        rho = self.rho
+
+        # Environment: the table (the first box), then boxes, capsules and spheres, cylinders, meshes.
+        names = [np.asarray(a.cap_names) for a in arms]
+        for name, Xi, h in self.boxes:
+            for s, a in enumerate(arms):
+                (A, B), rows = ends[s], st.live()
+                c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, mids[s][:, :, rows]), h[:, None, None])
+                                  <= (rho[s] + mg) ** 2)
+                r = rows[k]
+                hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
+                    < (a.cap_r[c] + mg) ** 2
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+        for name, ea, eb, er in self.caps:
+            for s, a in enumerate(arms):
+                (A, B), rows = ends[s], st.live()
+                erho = np.linalg.norm(eb - ea) / 2 + er
+                dm = mids[s][:, :, rows] - ((ea + eb) / 2)[:, None, None]
+                c, k = np.nonzero(_dot(dm, dm) <= (rho[s] + erho + mg) ** 2)
+                r = rows[k]
+                ones = np.ones(len(c))
+                hit = _seg_seg_dist2(A[:, c, r], B[:, c, r], ea[:, None] * ones, eb[:, None] * ones) \
+                    < (a.cap_r[c] + er + mg) ** 2
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+        for name, Xi, rad, hh in self.cyls:
+            for s, a in enumerate(arms):
+                (A, B), rows = ends[s], st.live()
+                Pm = _to_frame(Xi, mids[s][:, :, rows])
+                dm = _point_cyl_dist(Pm.reshape(3, -1), rad, hh).reshape(Pm.shape[1:])
+                c, k = np.nonzero(dm <= rho[s] + mg)
+                r = rows[k]
+                hit = _seg_cyl_dist(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), rad, hh) < a.cap_r[c] + mg
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+        for name, Xi, msh in self.meshes:
+            for s, a in enumerate(arms):
+                (A, B), rows = ends[s], st.live()
+                k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), A[:, :, rows], B[:, :, rows],
+                                  a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
+                st.fail(rows[k], "env_collision", names[s][c], name)
+
+        # Self: the trunk's boxes and capsules.
+        trunk = self.static
+        for s, a in enumerate(arms):
+            (A, B), M, rh, r_c = ends[s], mids[s], rho[s], a.cap_r
+            for kb in range(len(self.box_inv)):  # a handful of trunk boxes, each against its capsules
+                cc = self.trunk_box_pairs[s][self.trunk_box_pairs[s][:, 0] == kb, 1]
+                if not len(cc):
+                    continue
+                rows, Xi, h = st.live(), self.box_inv[kb], trunk.box_half[kb]
+                p, k = np.nonzero(_point_box_dist2(_to_frame(Xi, M[:, cc[:, None], rows]), h[:, None, None])
+                                  <= (rh[cc] + mg) ** 2)
+                r, c = rows[k], cc[p]
+                hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
+                    < (r_c[c] + mg) ** 2
+                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[c[hit]], trunk.box_names[kb])
+            if len(self.trunk_cap_pairs[s]):
+                rows = st.live()
+                kk, cc = self.trunk_cap_pairs[s].T
+                p, k = np.nonzero(np.ones((len(kk), len(rows)), bool))
+                r = rows[k]
+                hit = _seg_seg_dist2(trunk.cap_a[kk[p]].T, trunk.cap_b[kk[p]].T, A[:, cc[p], r], B[:, cc[p], r]) \
+                    < (trunk.cap_r[kk[p]] + r_c[cc[p]] + mg) ** 2
+                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[cc[p[hit]]],
+                           np.asarray(trunk.cap_names)[kk[p[hit]]])
+
+        # Self: left against right, only on rows whose arms' bounding boxes overlap.
+        rows = st.live()
+        box = [(np.min(np.minimum(A, B)[:, :, rows] - a.cap_r[:, None], axis=1),
+                np.max(np.maximum(A, B)[:, :, rows] + a.cap_r[:, None], axis=1))
+               for a, (A, B) in zip(arms, ends, strict=True)]
+        rows = rows[np.all((box[0][0] <= box[1][1] + mg) & (box[1][0] <= box[0][1] + mg), axis=0)]
+        if len(rows) and len(self.lr_pairs):
+            i, j = self.lr_pairs.T
+            dm = mids[0][:, i[:, None], rows] - mids[1][:, j[:, None], rows]
+            p, k = np.nonzero(_dot(dm, dm) <= (rho[0][i] + rho[1][j] + mg) ** 2)
+            r = rows[k]
+            (Al, Bl), (Ar, Br) = ends
+            hit = _seg_seg_dist2(Al[:, i[p], r], Bl[:, i[p], r], Ar[:, j[p], r], Br[:, j[p], r]) \
+                < (arms[0].cap_r[i[p]] + arms[1].cap_r[j[p]] + mg) ** 2
+            st.fail(r[hit], "self_collision", np.asarray(arms[0].cap_names)[i[p[hit]]],
+                       np.asarray(arms[1].cap_names)[j[p[hit]]])
+
+        # Self: within one arm.
+        for s, a in enumerate(arms):
+            if not len(self.intra_pairs[s]):
+                continue
+            rows = st.live()
+            (A, B), M, rh = ends[s], mids[s], rho[s]
+            i, j = self.intra_pairs[s].T
+            dm = M[:, i[:, None], rows] - M[:, j[:, None], rows]
+            p, k = np.nonzero(_dot(dm, dm) <= (rh[i] + rh[j] + mg) ** 2)
+            r = rows[k]
+            hit = _seg_seg_dist2(A[:, i[p], r], B[:, i[p], r], A[:, j[p], r], B[:, j[p], r]) \
+                < (a.cap_r[i[p]] + a.cap_r[j[p]] + mg) ** 2
+            st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[i[p[hit]]],
+                       np.asarray(a.cap_names)[j[p[hit]]])
+
+        # The object; a touching ball is exempt.
+        if self.object is not None and X_WO is not None:
+            for s, a in enumerate(arms):
+                rows = st.live()
+                if not len(rows):
+                    break
+                A, B = ends[s]
+                test = np.ones((len(a.cap_names), len(rows)), bool)
+                test[a.cap_link == a.eef_index] = ~touch[rows, s]
+                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), A[:, :, rows], B[:, :, rows],
+                                  a.cap_r, mg, test)
+                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object")
+        return st.alive, st.reason.astype(str)
+
+
+
+def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.02):
+    """Self-collision pairs worth testing, per arm: trunk box vs capsule ``(P, 2)``, trunk capsule vs
+    capsule ``(P, 2)``, capsule vs capsule of one arm ``(P, 2)``; and left vs right capsules ``(P, 2)``.
+
+    Left out, as MoveIt's setup assistant does: links of one rigid group or of adjacent groups (the
+    trunk is one group); pairs already in contact at ``q = 0`` (the fitted capsules are fat); pairs
+    that stayed more than ``never_clearance`` (m) apart over ``samples`` random in-limit postures
+    (fixed seed), e.g. the forearm and the ball, which the wrist's limits keep apart. Cached on the
+    robot.
+    """
+    key = ("self_pairs", samples, never_clearance)
+    if key in robot._cache:
+        return robot._cache[key]
+    arms, st = (robot.arm("left"), robot.arm("right")), robot.static
+    rng = np.random.default_rng(0)
+    box_inv = [se3.invert(X) for X in st.box_X_W]
+    ends = []
+    for a in arms:
+        q = np.concatenate([np.zeros((1, a.dof)), rng.uniform(a.lower, a.upper, (samples, a.dof))])
+        ends.append(_capsules_W(a, np.ascontiguousarray(q.T)))  # column 0 is q = 0
+
+    def keep(clearance: np.ndarray) -> bool:
+        return bool(clearance[0] >= 0.0 and clearance[1:].min() <= never_clearance)
+
+    out: list[list] = [[], [], []]
+    for s, a in enumerate(arms):
+        (A, B), r = ends[s], a.cap_r
+        grp = _rigid_groups(a)[a.cap_link]
+        far = np.flatnonzero(grp >= 1)  # group 0 hangs on the trunk
+        tb = [(k, c) for k in range(len(box_inv)) for c in far
+              if keep(np.sqrt(_seg_box_dist2(_to_frame(box_inv[k], A[:, c]), _to_frame(box_inv[k], B[:, c]),
+                                             st.box_half[k][:, None])) - r[c])]
+        tc = [(k, c) for k in range(len(st.cap_names)) for c in far
+              if keep(np.sqrt(_seg_seg_dist2(st.cap_a[k][:, None], st.cap_b[k][:, None], A[:, c], B[:, c]))
+                      - st.cap_r[k] - r[c])]
+        ia = [(i, j) for i in range(len(grp)) for j in range(i + 1, len(grp)) if abs(grp[i] - grp[j]) >= 2
+              and keep(np.sqrt(_seg_seg_dist2(A[:, i], B[:, i], A[:, j], B[:, j])) - r[i] - r[j])]
+        for lst, pairs in zip(out, (tb, tc, ia), strict=True):
+            lst.append(np.array(pairs, dtype=int).reshape(-1, 2))
+    (Al, Bl), (Ar, Br) = ends
+    rl, rr = arms[0].cap_r, arms[1].cap_r
+    lr = np.array([(i, j) for i in range(len(rl)) for j in range(len(rr))
+                   if keep(np.sqrt(_seg_seg_dist2(Al[:, i], Bl[:, i], Ar[:, j], Br[:, j])) - rl[i] - rr[j])],
+                  dtype=int).reshape(-1, 2)
+    robot._cache[key] = (*out, lr)
+    return robot._cache[key]
+
+
+class _Rows:
+    """Per-call bookkeeping of ``CollisionFn``: which rows are still free, and why the others are not."""
+
+    def __init__(self, n: int):
+        self.alive = np.ones(n, bool)
+        self.reason = np.full(n, "ok", dtype=object)
+
+    def live(self) -> np.ndarray:
+        return np.flatnonzero(self.alive)
+
+    def fail(self, rows: np.ndarray, kind: str, first, second) -> None:
+        """Mark ``rows`` (candidate order, repeats allowed) as colliding between the links named
+        ``first`` and ``second`` (arrays parallel to rows, or one name); a row keeps its first pair."""
+        if len(rows) == 0:
+            return
+        rows, idx = np.unique(rows, return_index=True)
+        new = self.alive[rows]
+        first = np.broadcast_to(np.asarray(first, dtype=object), (len(idx),) if np.ndim(first) == 0 else
+                                np.shape(first))
+        second = np.broadcast_to(np.asarray(second, dtype=object), first.shape)
+        self.reason[rows[new]] = kind + ":" + first[idx[new]] + "/" + second[idx[new]]
+        self.alive[rows] = False
+
+
+def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radius: np.ndarray,
+               margin: float, test: np.ndarray):
+    """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
+
+    Only ``test (C, m)`` pairs are examined. Two numpy filters run before python-fcl: the mesh's
+    bounding sphere, then separation by one of its convex-hull face planes. What remains goes to
+    ``fcl.collide`` (capsule inflated by the margin); a capsule with no triangle contact can still lie
+    wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
+    mesh, trimesh's ray test otherwise). Returns the hits as ``(row, capsule)`` index arrays, ordered
+    by capsule then row.
+    """
+    import fcl
+
+    # Bounding spheres in the world: the mesh's centre is moved into W, not every capsule into O.
+    R, t = X_OW[:, :3, :3], X_OW[:, :3, 3]
+    centre_W = np.einsum("mji,mj->im", R, msh.centre - t)  # X_WO applied to the centre, (3, m)
+    rr = radius + margin
+    rho = np.linalg.norm(B - A, axis=0) / 2 + rr[:, None]
+    cand = test & (np.linalg.norm((A + B) / 2 - centre_W[:, None, :], axis=0) <= rho + msh.radius)
+    c, k = np.nonzero(cand)
+    if not len(c):
+        return k, c
+    # The candidates' endpoints in the mesh frame.
+    a = np.einsum("kij,jk->ik", R[k], A[:, c, k]) + t[k].T
+    b = np.einsum("kij,jk->ik", R[k], B[:, c, k]) + t[k].T
+    rc = rr[c]
+    n, d = msh.planes[:, :3], msh.planes[:, 3]
+    sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
+    separated = np.any((sa > rc) & (sb > rc), axis=0)
+    c, k, a, b, rc, sa = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
+        sa[:, ~separated]
+    hit = np.zeros(len(c), bool)
+    req = fcl.CollisionRequest()
+    u = b - a
+    length = np.linalg.norm(u, axis=0)
+    Rz = se3.rotation_between(np.array([0.0, 0.0, 1.0]), np.where(length > 1e-12, u, [[0.0], [0.0], [1.0]]).T)
+    centre = ((a + b) / 2).T
+    shapes: dict = {}  # one fcl object per capsule (its length and radius do not change with q)
+    for i, ci in enumerate(c.tolist()):
+        if ci not in shapes:
+            g = fcl.Sphere(rc[i]) if length[i] <= 1e-12 else fcl.Capsule(rc[i], length[i])
+            shapes[ci] = fcl.CollisionObject(g, fcl.Transform())
+        o = shapes[ci]
+        o.setTransform(fcl.Transform(Rz[i], centre[i]))
+        hit[i] = fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0
+    # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
+    inside = ~hit & np.all(sa <= 0.0, axis=0)
+    if inside.any() and not msh.convex:
+        inside[inside] = msh.mesh.contains(a[:, inside].T)
+    hit |= inside
+    order = np.lexsort((k[hit], c[hit]))
+    return k[hit][order], c[hit][order]

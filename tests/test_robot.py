@@ -1,0 +1,407 @@
+"""Robot model: the SDA5F URDF against the fact sheet and PyBullet, batched FK/IK, collision checks."""
+
+from pathlib import Path
+
+import numpy as np
+import pybullet
+import pytest
+import trimesh
+
+from stages import robot as rb
+from stages import se3
+from stages.errors import InputError
+from stages.robot import load_robot, make_collision_fn
+
+URDF = Path(__file__).resolve().parents[1] / "data" / "robots" / "sda5f.urdf"
+
+#: A scene used by the collision tests: the robot base on the floor 0.75 m behind the table centre and
+#: 0.75 m below the table top (shoulders 0.15 m above it, 0.1 m behind the table's near edge).
+X_WB_SCENE = se3.make_transform(np.eye(3), [-0.75, 0.0, -0.75])
+TABLE = ((0.9, 0.6), 0.0)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(URDF)
+
+
+@pytest.fixture(scope="module")
+def scene_robot():
+    return load_robot(URDF, X_WB=X_WB_SCENE)
+
+
+class _Bullet:
+    """The URDF in a PyBullet DIRECT client; disconnects on exit."""
+
+    def __init__(self, X_WB=None):
+        self.X_WB = np.eye(4) if X_WB is None else X_WB
+
+    def __enter__(self):
+        self.cid = pybullet.connect(pybullet.DIRECT)
+        pos, quat = self.X_WB[:3, 3], se3.quat_from_matrix(self.X_WB[:3, :3])
+        # Without URDF_USE_IMPLICIT_CYLINDER PyBullet turns the stick's <cylinder> into a convex mesh.
+        self.body = pybullet.loadURDF(str(URDF), pos.tolist(), quat.tolist(), useFixedBase=True,
+                                      flags=pybullet.URDF_USE_IMPLICIT_CYLINDER, physicsClientId=self.cid)
+        n = pybullet.getNumJoints(self.body, physicsClientId=self.cid)
+        info = [pybullet.getJointInfo(self.body, j, physicsClientId=self.cid) for j in range(n)]
+        self.joint = {i[1].decode(): i[0] for i in info}
+        self.link = {i[12].decode(): i[0] for i in info}
+        self.info = {i[1].decode(): i for i in info}
+        return self
+
+    def __exit__(self, *exc):
+        pybullet.disconnect(physicsClientId=self.cid)
+
+    def set_q(self, names, q):
+        for name, value in zip(names, q, strict=True):
+            pybullet.resetJointState(self.body, self.joint[name], float(value), physicsClientId=self.cid)
+
+    def link_pose(self, name):
+        s = pybullet.getLinkState(self.body, self.link[name], computeForwardKinematics=True,
+                                  physicsClientId=self.cid)
+        return se3.make_transform(se3.matrix_from_quat(np.array(s[5])), np.array(s[4]))
+
+
+def _random_q(arm, n, rng):
+    return rng.uniform(arm.lower, arm.upper, (n, arm.dof))
+
+
+# ----------------------------------------------------------------------------------------------------
+# URDF and forward kinematics
+
+
+def test_urdf_joint_frames_at_zero_match_fact_sheet_in_our_fk_and_pybullet(robot):
+    # Fact sheet, "Geometry at q = 0" (base frame on the floor), rounded to the millimetre there.
+    sheet = {
+        "left_link_1_s": (0.195, 0.101, 0.900), "right_link_1_s": (0.195, -0.101, 0.900),
+        "left_link_2_l": (0.2145, 0.243, 0.900),
+        "left_tool0": (0.195, 0.574, 1.453), "right_tool0": (0.195, -0.574, 1.453),
+        # The sheet gives joint 2 at x = 0.2145 on both sides, but its own right-arm rule (joint 1 with
+        # rpy (pi/2, pi, 0), all later origins as on the left) turns joint 2's 0.0195 m offset to the
+        # other side: 0.195 - 0.0195. The joint table is the data; the summary is not exact here.
+        "right_link_2_l": (0.1755, -0.243, 0.900),
+    }
+    fk = {}
+    for name in ("left", "right"):
+        X = robot.fk(name, np.zeros((1, 7)))[0]
+        fk.update(zip(robot.arms[name].link_names, X, strict=True))
+    with _Bullet() as pb:
+        for link, p in sheet.items():
+            # The chain sums to y = 0.101 + 0.142 + 0.165 + 0.105 + 0.060 = 0.573 at tool0, which the
+            # sheet rounds to 0.574: 1.5 mm covers its rounding, nothing more.
+            np.testing.assert_allclose(fk[link][:3, 3], p, atol=1.5e-3, err_msg=link)
+            np.testing.assert_allclose(pb.link_pose(link)[:3, 3], p, atol=1.5e-3, err_msg=link)
+        np.testing.assert_allclose(fk["left_tool0"][:3, 3], (0.195, 0.573, 1.453), atol=1e-12)
+        np.testing.assert_allclose(fk["left_ball"][:3, 3], (0.195, 0.573, 1.573), atol=1e-12)
+
+
+def test_urdf_limits_and_capsules_load_in_pybullet_as_parsed(robot):
+    with _Bullet() as pb:
+        for arm in robot.arms.values():
+            for k, name in enumerate(arm.joint_names):
+                info = pb.info[name]
+                assert info[2] == pybullet.JOINT_REVOLUTE
+                assert info[8] == pytest.approx(arm.lower[k]) and info[9] == pytest.approx(arm.upper[k])
+                assert info[11] == pytest.approx(arm.velocity[k])
+            for c, link in enumerate(arm.cap_names):
+                shapes = pybullet.getCollisionShapeData(pb.body, pb.link[link], physicsClientId=pb.cid)
+                assert len(shapes) == 1
+                kind, dims = shapes[0][2], shapes[0][3]
+                length = np.linalg.norm(arm.cap_b[c] - arm.cap_a[c])
+                if link.endswith("_stick"):  # a cylinder in the URDF, its enclosing capsule for us
+                    assert kind == pybullet.GEOM_CYLINDER
+                    assert dims[0] == pytest.approx(length) and dims[1] == pytest.approx(arm.cap_r[c])
+                elif link.endswith("_ball"):
+                    assert kind == pybullet.GEOM_SPHERE and length == 0.0
+                else:  # PyBullet reports (length, radius) for a capsule
+                    assert kind == pybullet.GEOM_CAPSULE
+                    assert dims[0] == pytest.approx(length) and dims[1] == pytest.approx(arm.cap_r[c])
+    # Velocities and limits straight from the fact sheet's joint table.
+    left = robot.arms["left"]
+    np.testing.assert_allclose(left.lower, [-1.57, -1.90, -2.95, -1.57, -3.13, -1.90, -3.13])
+    np.testing.assert_allclose(left.upper, [4.71, 1.90, 2.95, 2.00, 3.13, 1.90, 3.13])
+    np.testing.assert_allclose(left.velocity, [3.48, 3.48, 3.48, 3.48, 3.48, 4.00, 6.10])
+
+
+def test_fk_equals_pybullet_at_random_q_for_all_links_of_both_arms_under_a_random_base_pose():
+    rng = np.random.default_rng(3)
+    X_WB = se3.make_transform(se3.rotation_about_axis(rng.normal(size=3), 0.7), rng.normal(size=3))
+    robot = load_robot(URDF, X_WB=X_WB, torso_angle=0.4)
+    with _Bullet(X_WB) as pb:
+        pb.set_q(["torso_b1"], [0.4])
+        for arm in robot.arms.values():
+            q = _random_q(arm, 12, rng)
+            X = robot.fk(arm.name, q)
+            assert X.shape == (12, len(arm.link_names), 4, 4)
+            for i in range(len(q)):
+                pb.set_q(arm.joint_names, q[i])
+                for k, link in enumerate(arm.link_names):
+                    # PyBullet's link states agree with ours to a few 1e-7 (it rounds somewhere in
+                    # single precision); 1e-6 m / 1e-6 is far below anything the planner resolves.
+                    np.testing.assert_allclose(pb.link_pose(link), X[i, k], atol=1e-6, err_msg=link)
+
+
+def test_fk_batch_equals_loop_and_eef_position_is_the_ball_link(robot):
+    rng = np.random.default_rng(0)
+    arm = robot.arms["right"]
+    for n in (0, 1, 17):
+        q = _random_q(arm, n, rng)
+        X = robot.fk("right", q)
+        assert X.shape == (n, len(arm.link_names), 4, 4)
+        for i in range(n):
+            np.testing.assert_array_equal(X[i], robot.fk("right", q[i:i + 1])[0])
+        np.testing.assert_allclose(robot.eef_position("right", q), X[:, arm.eef_index, :3, 3], atol=1e-15)
+        np.testing.assert_allclose(X[:, :, 3], np.broadcast_to([0, 0, 0, 1.0], X[:, :, 3].shape))
+
+
+def test_right_arm_mirrors_left_ball_through_xz_plane(robot):
+    q = _random_q(robot.arms["left"], 200, np.random.default_rng(1))
+    p_left, p_right = robot.eef_position("left", q), robot.eef_position("right", q)
+    np.testing.assert_allclose(p_right, p_left * [1.0, -1.0, 1.0], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Inverse kinematics
+
+
+def test_ik_round_trip_on_random_reachable_targets(robot):
+    rng = np.random.default_rng(7)
+    for name, arm in robot.arms.items():
+        p = robot.eef_position(name, _random_q(arm, 600, rng))
+        res = robot.ik(name, p, rng=np.random.default_rng(0))
+        assert res.q.shape == (600, 7) and res.ok.shape == res.err.shape == res.reason.shape == (600,)
+        assert np.mean(res.err <= 1e-3) >= 0.99
+        assert np.all((res.q >= arm.lower) & (res.q <= arm.upper))
+        # err is the true distance of the returned posture's ball from its target.
+        np.testing.assert_allclose(res.err, np.linalg.norm(robot.eef_position(name, res.q) - p, axis=1),
+                                   atol=1e-12)
+        np.testing.assert_array_equal(res.ok, res.reason == "ok")
+        assert set(res.reason) <= {"ok", "ik_unreachable", "joint_limit"}
+
+
+def test_ik_batch_equals_loop_for_zero_one_and_many_targets(robot):
+    rng = np.random.default_rng(11)
+    arm = robot.arms["left"]
+    p = robot.eef_position("left", _random_q(arm, 24, rng))
+    p[3] = [3.0, 0.0, 1.0]  # out of reach
+    p[5] = [0.2, 0.25, 0.9]  # beside the shoulder: inside the reach sphere, needs restarts or fails
+    for n in (0, 1, 24):
+        batch = robot.ik("left", p[:n], rng=np.random.default_rng(5))
+        assert batch.q.shape == (n, 7)
+        for i in range(n):
+            one = robot.ik("left", p[i:i + 1], rng=np.random.default_rng(5))
+            np.testing.assert_allclose(one.q[0], batch.q[i], atol=1e-9)
+            assert one.reason[0] == batch.reason[i]
+    assert batch.reason[3] == "ik_unreachable" and not batch.ok[3]
+    assert batch.err[3] > 1.0
+
+
+def test_ik_is_deterministic_given_the_seed_and_honours_a_seed_posture(robot):
+    arm = robot.arms["right"]
+    q_true = _random_q(arm, 50, np.random.default_rng(2))
+    p = robot.eef_position("right", q_true)
+    a = robot.ik("right", p, rng=np.random.default_rng(9))
+    b = robot.ik("right", p, rng=np.random.default_rng(9))
+    np.testing.assert_array_equal(a.q, b.q)
+    # Seeded with the answer, the solver returns it untouched.
+    exact = robot.ik("right", p, q_seed=q_true, restarts=0)
+    np.testing.assert_array_equal(exact.q, q_true)
+    # Seeded next to it, the solver stays nearby (the posture pull drifts it a little along the arm's
+    # self-motion), while unseeded solutions land anywhere on the 4-dimensional solution set.
+    near = robot.ik("right", p, q_seed=q_true + 0.01, restarts=0)
+    assert near.ok.all()
+    assert np.max(np.abs(near.q - q_true)) < 1.0
+    assert np.median(np.max(np.abs(a.q - q_true), axis=1)) > 2.0
+
+
+def test_ik_far_target_is_unreachable_without_iterating(robot):
+    arm = robot.arms["left"]
+    far = arm.reach_centre + [0.0, arm.reach_radius + 0.01, 0.0]
+    res = robot.ik("left", far[None, :])
+    assert res.reason[0] == "ik_unreachable"
+    np.testing.assert_array_equal(res.q[0], arm.q_rest)  # untouched: the pre-filter answered
+
+
+def test_ik_reach_bound_contains_every_reachable_ball_position(robot):
+    for name, arm in robot.arms.items():
+        p = robot.eef_position(name, _random_q(arm, 5000, np.random.default_rng(4)))
+        assert np.linalg.norm(p - arm.reach_centre, axis=1).max() <= arm.reach_radius
+
+
+def test_ik_trajectory_follows_a_line_continuously(robot):
+    arm = robot.arms["left"]
+    p0 = robot.eef_position("left", arm.q_rest[None])[0]
+    line = p0 + np.linspace(0.0, 1.0, 41)[:, None] * np.array([0.10, -0.15, -0.10])
+    res = robot.ik_trajectory("left", line, arm.q_rest)
+    assert res.q.shape == (41, 7) and res.ok.all()
+    assert np.max(np.abs(np.diff(res.q, axis=0))) < 0.1  # 5 mm steps: no branch flip
+    np.testing.assert_allclose(robot.eef_position("left", res.q), line, atol=1e-3)
+    # Many paths at once give the same answer as one at a time.
+    lines = np.stack([line, line + [0.0, 0.0, 0.05]], axis=1)  # (T, 2, 3)
+    both = robot.ik_trajectory("left", lines, np.stack([arm.q_rest, arm.q_rest]))
+    np.testing.assert_allclose(both.q[:, 0], res.q, atol=1e-12)
+
+
+def test_ik_trajectory_flags_a_jump(robot):
+    arm = robot.arms["left"]
+    p0 = robot.eef_position("left", arm.q_rest[None])[0]
+    res = robot.ik_trajectory("left", np.stack([p0, p0 + [0.0, -0.3, 0.0]]), arm.q_rest, max_joint_step=0.05)
+    assert res.reason[0] == "ok" and res.reason[1] == "joint_jump"
+
+
+# ----------------------------------------------------------------------------------------------------
+# Geometry kernels against dense sampling (the sampled minimum is an upper bound within one step)
+
+
+def _sampled_min(points_fn, a, b, n=2001):
+    t = np.linspace(0.0, 1.0, n)
+    P = a[:, None, :] + (b - a)[:, None, :] * t[None, :, None]  # (3, n, K)
+    return points_fn(P).min(axis=0), np.linalg.norm(b - a, axis=0) / (n - 1)
+
+
+def test_segment_box_distance_matches_sampling():
+    rng = np.random.default_rng(0)
+    h = np.array([[0.3], [0.2], [0.5]])
+    a, b = rng.normal(size=(3, 1000)), rng.normal(size=(3, 1000))
+    d = np.sqrt(rb._seg_box_dist2(a, b, h))
+    ref, step = _sampled_min(lambda P: np.linalg.norm(np.maximum(np.abs(P) - h[:, :, None], 0), axis=0), a, b)
+    assert np.all(d <= ref + 1e-12) and np.all(d >= ref - step - 1e-12)
+    assert 0.1 < np.mean(d == 0) < 0.9  # both crossing and missing segments were exercised
+
+
+def test_segment_segment_distance_matches_sampling_including_points_and_parallels():
+    rng = np.random.default_rng(1)
+    p1, q1, p2 = rng.normal(size=(3, 3, 600))
+    q2 = rng.normal(size=(3, 600))
+    q1[:, :50] = p1[:, :50]  # segment 1 a point
+    q2[:, 25:75] = p2[:, 25:75]  # segment 2 a point (both for 25 of them)
+    q2[:, 100:150] = p2[:, 100:150] + (q1 - p1)[:, 100:150]  # parallel
+    d = np.sqrt(rb._seg_seg_dist2(p1, q1, p2, q2))
+
+    def to_segment_2(P):  # exact distance from points P (3, n, K) to segment 2
+        u = (q2 - p2)[:, None, :]
+        t = np.clip(np.sum((P - p2[:, None, :]) * u, axis=0) / np.maximum(np.sum(u * u, axis=0), 1e-300), 0, 1)
+        return np.linalg.norm(P - p2[:, None, :] - u * t, axis=0)
+
+    ref, step = _sampled_min(to_segment_2, p1, q1)
+    assert np.all(d <= ref + 1e-12) and np.all(d >= ref - step - 1e-12)
+
+
+def test_segment_cylinder_distance_matches_sampling():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(3, 2000)), rng.normal(size=(3, 2000))
+    d = rb._seg_cyl_dist(a, b, 0.4, 0.3)
+    ref, step = _sampled_min(lambda P: rb._point_cyl_dist(P.reshape(3, -1), 0.4, 0.3).reshape(P.shape[1:]),
+                             a, b)
+    assert np.all(d <= ref + 1e-9) and np.all(d >= ref - step)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Collisions
+
+
+def test_collision_free_rest_posture_is_ok(scene_robot):
+    check = make_collision_fn(scene_robot, table=TABLE)
+    q = scene_robot.arms["left"].q_rest[None]
+    ok, reason = check(q, q)
+    assert ok.tolist() == [True] and reason.tolist() == ["ok"]
+
+
+def test_arm_folded_down_through_the_table_hits_the_table(scene_robot):
+    check = make_collision_fn(scene_robot, table=TABLE)
+    res = scene_robot.ik("left", np.array([[-0.1, 0.3, -0.12]]))  # 12 cm under the table top
+    assert res.ok[0]
+    q_right = scene_robot.arms["right"].q_rest[None]
+    ok, reason = check(res.q, q_right)
+    assert not ok[0] and reason[0].startswith("env_collision:left_") and reason[0].endswith("/table")
+    # Without the table the same posture is free.
+    assert make_collision_fn(scene_robot)(res.q, q_right)[0][0]
+
+
+def test_arms_crossed_into_each_other_collide_with_each_other(scene_robot):
+    check = make_collision_fn(scene_robot)  # no table: it is checked first and could be hit first
+    q_rest = scene_robot.arms["left"].q_rest[None]
+    p = scene_robot.eef_position("left", q_rest)
+    # Each ball where the other arm's ball rests.
+    ql = scene_robot.ik("left", p * [1.0, -1.0, 1.0])
+    qr = scene_robot.ik("right", p)
+    assert ql.ok[0] and qr.ok[0]
+    ok, reason = check(ql.q, qr.q)
+    assert not ok[0] and reason[0].startswith("self_collision:left_") and "/right_" in reason[0]
+
+
+@pytest.mark.parametrize("kind, dims", [("box", (0.02, 0.02, 0.02)), ("sphere", (0.01,)),
+                                        ("cylinder", (0.01, 0.02)), ("capsule", (0.01, 0.02)),
+                                        ("mesh", trimesh.creation.icosphere(radius=0.01))])
+def test_small_obstacle_at_a_link_hits_that_link(scene_robot, kind, dims):
+    arm = scene_robot.arms["left"]
+    q = arm.q_rest[None]
+    c = arm.cap_names.index("left_link_5_r")
+    X = scene_robot.fk("left", q)[0, arm.cap_link[c]]
+    # Link 5's segment midpoint at rest lies in no earlier capsule, so link 5 is the pair named.
+    centre = se3.transform_points(X, (arm.cap_a[c] + arm.cap_b[c]) / 2)
+    check = make_collision_fn(scene_robot, table=TABLE,
+                              obstacles=[(kind, dims, se3.make_transform(np.eye(3), centre))])
+    ok, reason = check(q, q)
+    assert reason.tolist() == ["env_collision:left_link_5_r/obstacle_0"]
+    # Moved 0.2 m above the arm's highest point it touches nothing.
+    above = centre + [0.0, 0.0, 0.6]
+    check = make_collision_fn(scene_robot, table=TABLE,
+                              obstacles=[(kind, dims, se3.make_transform(np.eye(3), above), "lamp")])
+    assert check(q, q)[0].tolist() == [True]
+
+
+def test_object_only_the_touching_ball_may_touch_it(scene_robot):
+    arm = scene_robot.arms["left"]
+    q = arm.q_rest[None]
+    p_ball = scene_robot.eef_position("left", q)[0]
+    box = trimesh.creation.box((0.3, 0.3, 0.3))
+    check = make_collision_fn(scene_robot, table=TABLE, object_mesh=box)
+    # The box's +y face 1 cm into the ball: only the ball overlaps it.
+    X_WO = se3.make_transform(np.eye(3), p_ball - [0.0, 0.16, 0.0])[None]
+    assert check(q, q, X_WO, np.array([[True, False]]))[1].tolist() == ["ok"]
+    assert check(q, q, X_WO, np.array([[False, False]]))[1].tolist() == ["env_collision:left_ball/object"]
+    # 5 cm in, the stick enters the box too, and the exemption does not cover it.
+    X_WO = se3.make_transform(np.eye(3), p_ball - [0.0, 0.12, 0.0])[None]
+    ok, reason = check(q, q, X_WO, np.array([[True, False]]))
+    assert not ok[0] and reason[0] == "env_collision:left_stick/object"
+    # A ball wholly inside a large box touches no triangle, and still collides.
+    big = make_collision_fn(scene_robot, object_mesh=trimesh.creation.box((1.2, 1.2, 1.2)))
+    X_WO = se3.make_transform(np.eye(3), p_ball)[None]
+    assert not big(q, q, X_WO, np.array([[False, False]]))[0][0]
+
+
+def test_collision_batch_equals_loop(scene_robot):
+    rng = np.random.default_rng(8)
+    arm = scene_robot.arms["left"]
+    n = 40
+    ql = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    qr = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    X_WO = np.broadcast_to(se3.make_transform(np.eye(3), [0.1, 0.0, 0.2]), (n, 4, 4))
+    touch = rng.random((n, 2)) < 0.5
+    check = make_collision_fn(scene_robot, table=TABLE, object_mesh=trimesh.creation.box((0.3, 0.4, 0.4)),
+                              obstacles=[("box", (0.2, 0.2, 0.2), se3.make_transform(np.eye(3), [0.2, 0.4, 0.2]))])
+    ok, reason = check(ql, qr, X_WO, touch)
+    assert 0 < ok.sum() < n  # the sample mixes free and colliding rows
+    assert len({r.split(":")[0] for r in reason}) == 3  # ok, env_collision, self_collision
+    for i in range(n):
+        one = check(ql[i:i + 1], qr[i:i + 1], X_WO[i:i + 1], touch[i:i + 1])
+        assert one[0][0] == ok[i] and one[1][0] == reason[i]
+    empty = check(ql[:0], qr[:0], X_WO[:0], touch[:0])
+    assert empty[0].shape == empty[1].shape == (0,)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Bad input
+
+
+def test_missing_end_effector_link_names_the_file(tmp_path):
+    with pytest.raises(InputError, match="sda5f.urdf.*left_hand"):
+        load_robot(URDF, eef_links=("left_hand", "right_ball"))
+
+
+def test_mesh_collision_geometry_is_rejected(tmp_path):
+    bad = tmp_path / "bad.urdf"
+    bad.write_text(URDF.read_text().replace('<sphere radius="0.02"/>', '<mesh filename="ball.stl"/>'))
+    with pytest.raises(InputError, match="bad.urdf.*mesh"):
+        load_robot(bad)
