@@ -19,7 +19,7 @@ B := build/$(SCENE)
 # Code every stage uses: a change here reruns everything.
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench analysis golden clean
+.PHONY: help install demo test lint bench analysis sample plan mpc golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -42,9 +42,42 @@ $(B)/analysis.png: $(B)/analysis/analysis.json stages/plots.py | $(INSTALLED)
 
 analysis: $(B)/analysis.png ## analyse the scene's object and draw it (Fig. 4)
 
+SAMPLE_CODE := stages/sample.py stages/poses.py stages/objectmodel.py stages/robot.py stages/stability.py \
+	stages/scene.py $(wildcard data/robots/*)
+$(B)/sample/sample.json: $(SCENE_FILE) $(B)/analysis/analysis.json $(SAMPLE_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) sample $(SCENE_FILE) --analysis $(B)/analysis --out $(B)/sample
+
+$(B)/poses.png: $(B)/sample/sample.json stages/plots.py | $(INSTALLED)
+	$(PIVOT) show poses $(B)/sample --scene $(SCENE_FILE) --png $@
+
+sample: $(B)/poses.png ## sample object poses and their grasps, draw them (Fig. 10a)
+
+GRAPH_CODE := stages/graph.py stages/mpc.py $(SAMPLE_CODE)
+$(B)/graph/graph.json: $(B)/sample/sample.json $(GRAPH_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) graph $(SCENE_FILE) --build $(B)
+
+PLAN_CODE := stages/plan.py stages/transit.py stages/connect.py $(GRAPH_CODE)
+# pivot plan exits 1 when no plan exists; plan.json then records why, and Make stops there.
+$(B)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) plan $(SCENE_FILE) --build $(B)
+
+$(B)/plan.png: $(B)/plan.json stages/plots.py | $(INSTALLED)
+	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --png $@
+
+plan: $(B)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
+
+$(B)/trajectories.parquet: $(B)/plan.json stages/trajectory.py $(PLAN_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) mpc $(SCENE_FILE) --build $(B)
+
+$(B)/trajectories.png: $(B)/trajectories.parquet stages/plots.py | $(INSTALLED)
+	$(PIVOT) show trajectories $(B) --scene $(SCENE_FILE) --png $@
+
+mpc: $(B)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
+
 # ------------------------------------------------------------------------------------------ jobs
-demo: $(INSTALLED) $(B)/analysis.png ## run the pipeline on the default scene and draw its figures
-	@echo "figures: $(B)/analysis.png"
+FIGURES := $(B)/analysis.png $(B)/poses.png $(B)/plan.png $(B)/trajectories.png
+demo: $(INSTALLED) $(FIGURES) ## run the pipeline on the default scene and draw its figures
+	@echo "figures: $(FIGURES)"
 
 lint: $(INSTALLED) ## ruff
 	$(BIN)/ruff check pivotcli stages tests bench

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from pivotcli import analyze, diff, show
+from pivotcli import analyze, diff, plan, sample, show
 from pivotcli.common import configure
 from stages import __version__
 
@@ -41,6 +41,10 @@ def main_options(
 
 
 app.command(name="analyze")(analyze.analyze)
+app.command(name="sample")(sample.sample)
+app.command(name="graph")(plan.graph)
+app.command(name="plan")(plan.plan)
+app.command(name="mpc")(plan.mpc)
 app.command(name="diff")(diff.diff)
 app.add_typer(show.app, name="show")
 

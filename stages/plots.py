@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
 
 from stages import artifacts  # noqa: E402
@@ -84,3 +85,229 @@ def show_analysis(analysis_dir: str | Path, png: str | Path, n_pairs: int = 12) 
         ax.view_init(elev=22, azim=-60)
     fig.tight_layout()
     _save(fig, png)
+
+
+def show_poses(scene, sample_dir: str | Path, png: str | Path, com_O=None, reach: list | None = None) -> None:
+    """Fig. 10a: sampled object poses over the table (CoM; SP red, USP blue), pivot links red,
+    tumble links blue, grasps per pose as dot size, obstacles grey, the arms' reach dashed.
+
+    ``com_O``: the CoM in the object frame (dots at the CoM, else at the object frame's origin);
+    ``reach``: optional ``[(name, centre_W (3,), radius)]`` spheres, drawn where they cut the plane
+    of the CoM's median height.
+    """
+    from stages import se3
+
+    d = Path(sample_dir)
+    ps = artifacts.read_table(d / "poses.parquet", "poses")
+    links = artifacts.read_table(d / "pose_links.parquet", "pose_links")
+    grasps = artifacts.read_table(d / "grasps.parquet", "grasps")
+    X = se3.matrix_from_columns(ps.columns)
+    p = X[:, :3, 3] if com_O is None else se3.transform_points(X, np.asarray(com_O, dtype=float))
+    ok = ps["status"] == "ok"
+    n_grasps = np.bincount(grasps["pose_id"], minlength=len(ps)) if len(grasps) else np.zeros(len(ps), int)
+    fig, ax = plt.subplots(figsize=(9, 7))
+    sx, sy = scene.table.size
+    ax.add_patch(plt.Rectangle((-sx / 2, -sy / 2), sx, sy, fc=(0.93, 0.9, 0.85), ec="k", lw=1))
+    for ob in scene.obstacle_geometries():
+        if ob.kind == "box":
+            corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(ob.size[:2]) / 2
+            c = (ob.X_WOb[:2, :2] @ corners.T).T + ob.X_WOb[:2, 3]
+            ax.add_patch(plt.Polygon(c, fc="0.55", ec="k"))
+        elif ob.kind == "cylinder":
+            ax.add_patch(plt.Circle(ob.X_WOb[:2, 3], ob.radius, fc="0.55", ec="k"))
+        else:
+            v = se3.transform_points(ob.X_WOb, ob.vertices)[:, :2]
+            ax.scatter(v[:, 0], v[:, 1], s=1, c="0.55")
+    a, b = links["pose_a"], links["pose_b"]
+    for prim, colour in (("pivot", "tab:red"), ("tumble", "tab:blue")):
+        m = links["primitive"] == prim
+        segs = np.stack([p[a[m], :2], p[b[m], :2]], axis=1)
+        ax.add_collection(LineCollection(segs, colors=colour, lw=0.6, alpha=0.5, label=f"{prim} ({m.sum()})"))
+    for kind, colour in (("SP", "tab:red"), ("USP", "tab:blue")):
+        m = ok & (ps["support"] == kind)
+        ax.scatter(p[m, 0], p[m, 1], s=6 + 1.5 * np.sqrt(n_grasps[m]), c=colour, alpha=0.8, zorder=3,
+                   label=f"{kind} poses ({m.sum()})")
+    bad = ~ok
+    ax.scatter(p[bad, 0], p[bad, 1], s=8, marker="x", c="0.4", zorder=3, label=f"rejected ({bad.sum()})")
+    ax.scatter(*p[0, :2], s=120, marker="*", c="gold", ec="k", zorder=4, label="start")
+    z = float(np.median(p[ok, 2])) if ok.any() else 0.2
+    for name, centre, radius in reach or []:
+        h = radius**2 - (z - centre[2]) ** 2
+        if h > 0:
+            ax.add_patch(plt.Circle(centre[:2], np.sqrt(h), fill=False, ls="--", ec="tab:green", lw=1))
+            ax.annotate(f"{name} reach", centre[:2] + np.array([np.sqrt(h) * 0.7, 0.0]), color="tab:green")
+    ax.set_aspect("equal")
+    ax.set_xlim(-sx / 2 - 0.45, sx / 2 + 0.1)
+    ax.set_ylim(-sy / 2 - 0.15, sy / 2 + 0.15)
+    ax.set_xlabel("x (m, away from the robot)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{scene.name}: {ok.sum()} poses, {len(grasps)} grasps (dot size), Fig. 10a")
+    ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
+    fig.tight_layout()
+    _save(fig, png)
+
+
+def show_trajectories(traj_dir_or_file: str | Path, png: str | Path, f_max: float, mu_table: float,
+                      limits: dict | None = None) -> None:
+    """Fig. 12-style plots over time: object tilt and yaw against the reference, ball forces with their
+    bound, the table reaction against its friction cone, joint angles within their limits.
+
+    ``limits``: ``{"left": (lower (n,), upper (n,)), "right": ...}`` to normalise the joint angles.
+    """
+    path = Path(traj_dir_or_file)
+    if path.is_dir():
+        path = path / "trajectories.parquet"
+    tr = artifacts.read_table(path, "trajectories")
+    t = tr["t"]
+    kinds = tr["kind"]
+    fig, axes = plt.subplots(4, 1, figsize=(11, 11), sharex=True)
+    # Background bands per primitive kind.
+    colours = {"pivot": (1, 0.85, 0.85), "tumble": (0.85, 0.88, 1), "transit": (0.9, 0.97, 0.9), "hold": (1, 1, 1)}
+    change = np.flatnonzero(np.r_[True, kinds[1:] != kinds[:-1], True])
+    for ax in axes:
+        for a, b in zip(change[:-1], change[1:], strict=True):
+            ax.axvspan(t[a], t[min(b, len(t) - 1)], color=colours.get(kinds[a], (1, 1, 1)), lw=0)
+    ax = axes[0]
+    ax.plot(t, np.degrees(tr["tilt"]), c="tab:red", lw=1.2, label="tilt")
+    ax.plot(t, np.degrees(tr["tilt_ref"]), c="tab:red", ls="--", lw=0.8, label="tilt reference")
+    ax.plot(t, np.degrees(tr["yaw"]), c="tab:blue", lw=1.2, label="yaw")
+    ax.plot(t, np.degrees(tr["yaw_ref"]), c="tab:blue", ls="--", lw=0.8, label="yaw reference")
+    ax.set_ylabel("angle from the\nprimitive's start (deg)")
+    ax.legend(loc="upper right", fontsize=8, ncol=2)
+    ax.set_title("pivot (red bands), tumble (blue), transit (green): object, forces, table, joints")
+    ax = axes[1]
+    for side, colour in (("l", "tab:orange"), ("r", "tab:purple")):
+        f = np.stack([tr[f"f{side}x"], tr[f"f{side}y"], tr[f"f{side}z"]], 1)
+        ax.plot(t, np.linalg.norm(f, axis=1), c=colour, lw=1, label=f"|f| {'left' if side == 'l' else 'right'} ball")
+    ax.axhline(f_max, c="k", ls=":", lw=1, label=f"bound {f_max:g} N")
+    ax.set_ylabel("ball force (N)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[2]
+    f0 = np.stack([tr["f0x"], tr["f0y"], tr["f0z"]], 1)
+    ratio = np.linalg.norm(f0[:, :2], axis=1) / np.maximum(f0[:, 2], 1e-9)
+    ax.plot(t, ratio, c="tab:green", lw=1, label="|f_t| / f_n at the table")
+    ax.axhline(mu_table, c="k", ls=":", lw=1, label=f"μ table {mu_table:g}")
+    ax2 = ax.twinx()
+    ax2.plot(t, f0[:, 2], c="0.4", lw=0.8)
+    ax2.set_ylabel("f_n (N)", color="0.4")
+    ax.set_ylabel("friction ratio")
+    ax.set_ylim(0, max(1.1 * mu_table, float(np.nanmax(ratio)) * 1.1 if len(ratio) else 1))
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[3]
+    for arm, colour in (("left", "tab:orange"), ("right", "tab:purple")):
+        q = np.stack(list(tr[f"q_{arm}"]))
+        if limits:
+            lo, hi = limits[arm]
+            q = (q - lo) / (hi - lo)
+        ax.plot(t, q, c=colour, lw=0.7, alpha=0.8)
+    if limits:
+        ax.axhline(0, c="k", ls=":", lw=1)
+        ax.axhline(1, c="k", ls=":", lw=1)
+        ax.set_ylabel("joints, 0 = lower\n1 = upper limit")
+    else:
+        ax.set_ylabel("joints (rad)")
+    ax.set_xlabel("t (s)")
+    fig.tight_layout()
+    _save(fig, png)
+
+
+def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Path | None = None) -> None:
+    """Fig. 10b with the chosen path, and a storyboard of the plan's object poses over the table.
+
+    Left: every graph node at its pose's CoM (grasps of one pose on a small ring around it; SP red,
+    USP blue, free nodes grey), regrasp edges yellow, pivot red, tumble blue, the plan's path black.
+    Right: the object's footprint at each pose of the plan (light to dark in plan order), the pivot
+    vertices used, obstacles, the start and the goal.
+    """
+    from stages import se3
+
+    b = Path(build_dir)
+    plan = artifacts.read_json(plan_path or b / "plan.json", "plan")
+    nodes = artifacts.read_table(b / "graph" / "nodes.parquet", "nodes")
+    edges = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    ps = artifacts.read_table(b / "sample" / "poses.parquet", "poses")
+    summary = artifacts.read_json(b / "analysis" / "analysis.json", "analysis")
+    mesh = trimesh.load(b / "analysis" / "object.ply", force="mesh", process=False)
+    com = np.asarray(summary["com"])
+    X = se3.matrix_from_columns(ps.columns)
+    p = se3.transform_points(X, com)[:, :2]
+    # Node positions: grasps on a ring of radius 1 cm around their pose, free nodes at the centre.
+    pose = nodes["pose_id"]
+    rank = np.zeros(len(nodes))
+    order = np.lexsort((nodes["node_id"], pose))
+    counts = np.bincount(pose, minlength=len(ps))
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank[order] = np.arange(len(order)) - start[pose[order]]
+    ang = 2 * np.pi * rank / np.maximum(counts[pose], 1)
+    ring = np.where(nodes["kind"] == "grasp", 0.012, 0.0)
+    xy = p[pose] + ring[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(16, 7.5))
+    sx, sy = scene.table.size
+    for a_ in (ax, ax2):
+        a_.add_patch(plt.Rectangle((-sx / 2, -sy / 2), sx, sy, fc=(0.95, 0.93, 0.9), ec="k", lw=1))
+        for ob in scene.obstacle_geometries():
+            if ob.kind == "box":
+                c = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(ob.size[:2]) / 2
+                a_.add_patch(plt.Polygon((ob.X_WOb[:2, :2] @ c.T).T + ob.X_WOb[:2, 3], fc="0.5", ec="k"))
+            elif ob.kind == "cylinder":
+                a_.add_patch(plt.Circle(ob.X_WOb[:2, 3], ob.radius, fc="0.5", ec="k"))
+    ok = edges["status"] == "ok"
+    for prim, colour, lw in (("regrasp", "gold", 0.3), ("pivot", "tab:red", 0.4), ("tumble", "tab:blue", 0.8)):
+        m = ok & (edges["primitive"] == prim)
+        segs = np.stack([xy[edges["node_a"][m]], xy[edges["node_b"][m]]], 1)
+        ax.add_collection(LineCollection(segs, colors=colour, lw=lw, alpha=0.6, label=f"{prim} ({m.sum()})"))
+    colour = np.where(nodes["kind"] == "free", "0.4", np.where(nodes["support"] == "SP", "tab:red", "tab:blue"))
+    ax.scatter(xy[:, 0], xy[:, 1], s=3, c=colour, zorder=3)
+    path = plan.get("nodes", [])
+    if path:
+        ax.plot(xy[path, 0], xy[path, 1], c="k", lw=2.2, zorder=4, label="plan")
+    ax.set_title(f"graph: {len(nodes)} nodes, {ok.sum()} edges; plan {plan['status']}")
+    ax.legend(loc="upper left", fontsize=8)
+
+    hull2 = mesh.convex_hull.vertices
+    steps = plan.get("steps", [])
+    Xs = []
+    for s in steps:
+        for key in ("X_WO_from", "X_WO_to"):
+            Xs.append(se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in s[key].items()})[0])
+    uniq = []
+    for Xi in Xs:
+        if not uniq or np.abs(uniq[-1] - Xi).max() > 1e-9:
+            uniq.append(Xi)
+    cmap = plt.get_cmap("viridis")
+    from scipy.spatial import ConvexHull
+
+    for i, Xi in enumerate(uniq):
+        v = se3.transform_points(Xi, hull2)[:, :2]
+        h = ConvexHull(v)
+        ax2.add_patch(plt.Polygon(v[h.vertices], fill=False, ec=cmap(i / max(len(uniq) - 1, 1)), lw=1.2))
+        c = se3.transform_points(Xi, com)
+        ax2.scatter(*c[:2], s=8, color=cmap(i / max(len(uniq) - 1, 1)), zorder=3)
+    for s in steps:
+        if s["primitive"] == "pivot":
+            Xa = se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in s["X_WO_from"].items()})[0]
+            vpos = se3.transform_points(Xa, np.asarray([hull_vertex(b, s["vertex"])]))[0]
+            ax2.scatter(*vpos[:2], marker="o", s=18, c="k", zorder=4)
+    if uniq:
+        for Xi, label, m in ((uniq[0], "start", "*"), (uniq[-1], "end", "X")):
+            ax2.scatter(*se3.transform_points(Xi, com)[:2], s=160, marker=m, c="gold", ec="k", zorder=5, label=label)
+    c = plan.get("counts", {})
+    ax2.set_title(f"plan: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} tumbles, {c.get('regrasp', 0)} regrasps "
+                  "(black dots: pivot vertices)")
+    ax2.legend(loc="upper left", fontsize=8)
+    for a_ in (ax, ax2):
+        a_.set_aspect("equal")
+        a_.set_xlim(-sx / 2 - 0.05, sx / 2 + 0.05)
+        a_.set_ylim(-sy / 2 - 0.1, sy / 2 + 0.1)
+        a_.set_xlabel("x (m)")
+        a_.set_ylabel("y (m)")
+    fig.tight_layout()
+    _save(fig, png)
+
+
+def hull_vertex(build_dir: Path, vertex_id: int) -> np.ndarray:
+    """Position ``(3,)`` in O of hull corner ``vertex_id`` of an analysis."""
+    hull = artifacts.read_table(Path(build_dir) / "analysis" / "hull.parquet", "hull")
+    i = np.flatnonzero((hull["kind"] == "vertex") & (hull["v0"] == vertex_id))[0]
+    return np.array([hull["x0"][i], hull["y0"][i], hull["z0"][i]])

@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
-from stages import se3
+from stages import connect, se3
 
-PRIMITIVES = ("start", "pivot", "tumble")
+PRIMITIVES = ("start", "goal", "pivot", "tumble")
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,10 @@ class Params:
     min_tumble_edge: float = 0.05
     merge_xy: float = 1e-4
     merge_yaw: float = 1e-4
+    #: Goal insertion: lattice poses tried (nearest first), connections kept, largest pivot angle.
+    goal_candidates: int = 12
+    goal_connections: int = 3
+    goal_max_angle: float = np.radians(30.0)
 
 
 @dataclass(frozen=True)
@@ -88,6 +92,7 @@ class PoseSet:
     link_vertex: np.ndarray  # (L,) int
     link_edge: np.ndarray  # (L, 2) int
     link_angle: np.ndarray  # (L,) rad, rotation from a to b
+    goal_id: int = -1  # the goal's pose id, -1 when not asked for or not reached
 
 
 def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
@@ -108,10 +113,11 @@ def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
 
 
 def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: int, table_size, obstacles,
-                 params: Params) -> PoseSet:
+                 params: Params, goal: tuple[np.ndarray, int] | None = None) -> PoseSet:
     """Breadth-first pose lattice from the start (see the module docstring).
 
-    ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m.
+    ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m;
+    ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
     """
     corners = pivot_corners(model, params.corner_cluster)
     half = np.asarray(table_size, dtype=float) / 2
@@ -155,13 +161,14 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
                         return i
         return -1
 
-    def add(X, g, parent, primitive, vertex, edge, angle) -> int:
+    def add(X, g, parent, primitive, vertex, edge, angle) -> tuple[int, bool]:
+        """Add a pose (or find its twin); returns its row and whether it is new."""
         k = key_of(X, g)
         found = find(k)
         if found >= 0:
             if parent >= 0 and rows[found]["status"] == "ok" and found != parent:
                 links.append((parent, found, primitive, vertex, edge, angle))
-            return -1
+            return found, False
         status, kind, margin = classify(X, g)
         i = len(rows)
         rows.append(dict(X=X, g=g, kind=kind, status=status, parent=parent, primitive=primitive, vertex=vertex,
@@ -170,22 +177,54 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
                          []).append(i)
         if status == "ok" and parent >= 0:
             links.append((parent, i, primitive, vertex, edge, angle))
-        return i if status == "ok" else -1
+        return i, True
 
-    first = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
-    queue = deque([first] if first >= 0 else [])
-    n_ok = 1 if first >= 0 else 0
+    first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
+    queue = deque([first] if rows[first]["status"] == "ok" else [])
+    n_ok = len(queue)
     while queue and n_ok < params.max_poses:  # graph search over at most max_poses poses
         i = queue.popleft()
         X, g = rows[i]["X"], rows[i]["g"]
         for child in _successors(model, corners, X, g, half, params):
             if n_ok >= params.max_poses:
                 break
-            j = add(child[0], child[1], i, *child[2:])
-            if j >= 0:
+            j, new = add(child[0], child[1], i, *child[2:])
+            if new and rows[j]["status"] == "ok":
                 n_ok += 1
                 queue.append(j)
-    return _to_pose_set(rows, links)
+    goal_id = -1 if goal is None else _insert_goal(model, corners, rows, add, *goal, params)
+    return _to_pose_set(rows, links, goal_id)
+
+
+def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> int:
+    """Join the goal pose to the lattice (§5.3): by up to three pivots from the nearest kept poses on
+    the goal's placement (``stages.connect``, the controllability of pivoting [18]). Returns the
+    goal's pose id, or -1 when no sequence of kept poses reaches it."""
+    goal, new = add(np.asarray(X_goal, dtype=float), int(g_goal), -1, "goal", -1, (-1, -1), 0.0)
+    if not new or rows[goal]["status"] != "ok":
+        return goal if rows[goal]["status"] == "ok" else -1
+    c_goal = se3.transform_points(X_goal, model.com)[:2]
+    cand = [i for i, r in enumerate(rows) if r["status"] == "ok" and r["g"] == g_goal and i != goal]
+    cand.sort(key=lambda i: float(np.linalg.norm(se3.transform_points(rows[i]["X"], model.com)[:2] - c_goal)))
+    ids = corners[g_goal]
+    joined = 0
+    for i in cand[: params.goal_candidates]:  # a dozen closed-form solves
+        conn = connect.connect_poses(rows[i]["X"], X_goal, model.vertices[ids], connect.Params(
+            max_angle=params.goal_max_angle))
+        if not conn.ok:
+            continue
+        prev = i
+        for step in range(len(conn.angles)):  # at most three pivots
+            last = step == len(conn.angles) - 1
+            X = np.asarray(X_goal, dtype=float) if last else conn.poses[step + 1]
+            j, _ = add(X, g_goal, prev, "pivot", int(ids[conn.corners[step]]), (-1, -1), float(conn.angles[step]))
+            if rows[j]["status"] != "ok":
+                break
+            prev = j
+        joined += prev == goal
+        if joined >= params.goal_connections:
+            break
+    return goal
 
 
 def _successors(model, corners, X, g, half, params):
@@ -331,7 +370,7 @@ def fcl_object(ob) -> fcl.CollisionObject:
     return fcl.CollisionObject(geom, fcl.Transform(X[:3, :3], X[:3, 3]))
 
 
-def _to_pose_set(rows: list[dict], links: list[tuple]) -> PoseSet:
+def _to_pose_set(rows: list[dict], links: list[tuple], goal_id: int = -1) -> PoseSet:
     n = len(rows)
     L = len(links)
     return PoseSet(
@@ -350,4 +389,5 @@ def _to_pose_set(rows: list[dict], links: list[tuple]) -> PoseSet:
         link_vertex=np.array([lk[3] for lk in links], dtype=np.int64),
         link_edge=np.array([lk[4] for lk in links], dtype=np.int64).reshape(L, 2),
         link_angle=np.array([lk[5] for lk in links], dtype=float),
+        goal_id=int(goal_id),
     )

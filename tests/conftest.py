@@ -39,3 +39,37 @@ def box_path(tmp_path) -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+def write_scene(tmp_path: Path, name: str = "small", **changes) -> Path:
+    """A copy of the default scene with absolute paths and ``changes`` applied (dotted keys)."""
+    import json
+
+    data = json.loads((REPO / "data" / "scenes" / "default.json").read_text())
+    data["object"]["mesh"] = str(REPO / "data" / "objects" / "toy_piano.obj")
+    data["robot"]["urdf"] = str(REPO / "data" / "robots" / "sda5f.urdf")
+    data["name"] = name
+    for key, value in changes.items():
+        d = data
+        parts = key.split(".")
+        for k in parts[:-1]:
+            d = d[k]
+        d[parts[-1]] = value
+    p = tmp_path / f"{name}.json"
+    p.write_text(json.dumps(data))
+    return p
+
+
+@pytest.fixture(scope="session")
+def small_build(tmp_path_factory):
+    """analyze + sample + graph + plan of a small default-like scene (60 poses), built once."""
+    from stages import analyze, graph, plan, sample
+
+    tmp = tmp_path_factory.mktemp("small")
+    scene = write_scene(tmp, **{"planner.max_poses": 60, "goal.xy": [-0.12, 0.0]})
+    b = tmp / "build"
+    analyze.run(PIANO, b / "analysis", 3.1, analyze.Params())
+    sample.run(scene, b / "analysis", b / "sample", sample.Params())
+    graph.run(scene, b / "analysis", b / "sample", b / "graph", graph.Params())
+    plan.run(scene, b / "analysis", b / "sample", b / "graph", b / "plan.json", plan.Params())
+    return scene, b

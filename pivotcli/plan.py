@@ -1,0 +1,87 @@
+"""``pivot graph SCENE`` and ``pivot plan SCENE``: the grasp-augmented graph and its search (§5)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from pivotcli.common import cli_errors, info, step
+from stages import graph as graph_stage
+from stages import plan as plan_stage
+
+
+def _dirs(scene: Path, build: Path | None) -> Path:
+    return build or Path("build") / scene.stem
+
+
+def graph(
+    scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
+    build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
+) -> None:
+    """Build the grasp-augmented graph: pivot, regrasp and tumble edges with their motion checks."""
+    b = _dirs(scene, build)
+    with cli_errors(), step("building the graph"):
+        g = graph_stage.run(scene, b / "analysis", b / "sample", b / "graph", graph_stage.Params(),
+                            producer=f"graph {scene}")
+    e = g.summary["edges"]
+    info(f"{scene.stem}: {sum(g.summary['nodes'].values())} nodes; edges ok/rejected: pivot "
+         f"{e['pivot']['ok']}/{e['pivot']['rejected']}, regrasp {e['regrasp']['ok']}/{e['regrasp']['rejected']}, "
+         f"tumble {e['tumble']['ok']}/{e['tumble']['rejected']} in {g.timings['total']:.2f} s -> {b / 'graph'}/")
+
+
+def plan(
+    scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
+    build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Plan file (default <build>/plan.json).")] = None,
+    no_regrasp: Annotated[bool, typer.Option("--no-regrasp", help="Ablation: pivoting gait only [3].")] = False,
+    no_tumble: Annotated[bool, typer.Option("--no-tumble", help="Ablation: no tumbling.")] = False,
+    no_usp: Annotated[bool, typer.Option("--no-usp", help="Ablation: no unstable placements.")] = False,
+    no_mpc: Annotated[bool, typer.Option("--no-mpc", help="Skip the MPC check of each pivot.")] = False,
+) -> None:
+    """Search the graph, check each primitive at the motion level and backtrack (§5.3) -> plan.json."""
+    b = _dirs(scene, build)
+    out = out or b / "plan.json"
+    params = plan_stage.Params(no_regrasp=no_regrasp, no_tumble=no_tumble, no_usp=no_usp, check_mpc=not no_mpc)
+    with cli_errors(), step("planning"):
+        p = plan_stage.run(scene, b / "analysis", b / "sample", b / "graph", out, params, producer=f"plan {scene}")
+    removed = len(p["log"])
+    if p["status"] == "infeasible":
+        typer.echo(f"pivot: no plan for {scene.stem}: {p['reason']} ({removed} edges removed) -> {out}", err=True)
+        raise typer.Exit(code=1)
+    c = p["counts"]
+    msg = (f"{scene.stem}: {p['status']} plan, cost {p['cost']:.2f}: {c['pivot']} pivots, {c['tumble']} tumbles, "
+           f"{c['regrasp']} regrasps; {removed} edges removed by backtracking; {p['time']:.2f} s -> {out}")
+    if p["status"] == "partial":
+        err = p["remaining_error"]
+        msg += f"\n  goal out of reach: ended {err['distance'] * 100:.1f} cm short (x {err['x'] * 100:+.1f} cm)"
+    info(msg)
+
+
+def mpc(
+    scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
+    build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
+    plan_file: Annotated[Path | None, typer.Option("--plan", help="Plan (default <build>/plan.json).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Default <build>/trajectories.parquet.")] = None,
+    horizon: Annotated[int, typer.Option(help="MPC prediction horizon N_p (steps).")] = 20,
+    alpha: Annotated[float, typer.Option(help="MPC state-error weight (eq. 11).")] = 1e7,
+    beta: Annotated[float, typer.Option(help="MPC force weight (eq. 11).")] = 1.0,
+) -> None:
+    """Recompute the force and joint trajectories of an existing plan with the MPC (§5.2), no replanning."""
+    from dataclasses import replace
+
+    from stages import mpc as mpc_core
+    from stages import trajectory
+
+    b = _dirs(scene, build)
+    out = out or b / "trajectories.parquet"
+    params = trajectory.Params(mpc=replace(mpc_core.Params(), horizon=horizon, alpha=alpha, beta=beta))
+    with cli_errors(), step("computing trajectories"):
+        stats = trajectory.run(scene, b / "analysis", plan_file or b / "plan.json", out, params,
+                               producer=f"mpc {scene}")
+    if stats["status"] != "ok":
+        typer.echo(f"pivot: MPC infeasible on primitive {stats['failed_primitive']} of {scene.stem}", err=True)
+        raise typer.Exit(code=1)
+    info(f"{scene.stem}: {stats['primitives']} primitives, {stats['steps']} steps, {stats['duration']:.1f} s of "
+         f"motion, MPC tracking error <= {stats['mpc_max_error']:.2e} rad -> {out}")

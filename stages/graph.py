@@ -1,0 +1,354 @@
+"""Stage ``graph``: the grasp-augmented graph of §5.1 (Fig. 10b, 11).
+
+Nodes (``nodes.parquet``):
+
+- a **grasp node** per feasible grasp of a sampled pose (node id = grasp id): the object at that pose,
+  both balls on the grasp's contacts;
+- a **free node** per SP pose: the object standing alone, both arms away. It makes regrasping in SP
+  linear in the number of grasps: grasp → free → grasp costs the regrasp weight, split in two.
+
+Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its reason code):
+
+- **pivot** (weight ``w_pivot``): two grasp nodes with the same contacts on two poses linked by a
+  pivot about vertex v (§5.2.1). Checked along the tilt → rotate → lower motion sampled from
+  ``stages.mpc.pivot_reference``: batched IK along the path seeded from the first node (no branch
+  flips), the arms free of collision at every sample, and the object in equilibrium on v with the two
+  balls at the largest tilt (the stability LP). Undirected.
+- **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
+  between two grasps that share one ball's contact, when that ball alone holds the object on its
+  table edge (``margin_hold_*`` ≥ 0, §5.2.2): the other ball moves. Undirected. The transit motions
+  themselves are planned lazily by ``pivot plan``.
+- **tumble** (weight ``w_tumble``, directed): over a support edge onto the next stable face
+  (§5.2.2). One ball pushes: a contact whose inward normal drives the rotation, with IK and no
+  collision along the first ``push_angle`` of the rotation (it then lets the object fall); the other
+  arm stays away. Into SP: free node → free node. Into USP (Fig. 14): free node → the grasp nodes of
+  the new pose whose catching ball (the other arm) holds the object alone; the pusher then moves to
+  its contact of that grasp while the catcher holds.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from stages import artifacts, mpc, se3, stability
+from stages.artifacts import Field
+from stages.objectmodel import load_object_model
+from stages.robot import load_robot
+from stages.sample import make_scene_collision_fn
+from stages.scene import Scene, load_scene
+
+
+@dataclass(frozen=True)
+class Params:
+    """Motion checks of the graph edges (s, rad)."""
+
+    #: Tilt, rotate and lower durations of the sampled pivot path; with ``check_dt`` they set how
+    #: many intermediate configurations are checked.
+    check_durations: tuple[float, float, float] = (1.0, 1.5, 1.0)
+    check_dt: float = 0.25
+    #: A pusher follows the tumble for this angle, then lets the object fall (notes: 35–45°).
+    push_angle: float = np.radians(40.0)
+    push_samples: int = 6
+    #: Pusher candidates tried per tumble and arm (highest lever arm first).
+    push_candidates: int = 8
+    #: The pusher's inward normal must be within this angle of the contact's motion direction.
+    push_cone: float = np.radians(50.0)
+    ik_tol: float = 1e-3
+    max_joint_step: float = 0.5
+
+
+@dataclass(frozen=True)
+class Graph:
+    nodes: dict
+    edges: dict
+    summary: dict
+    timings: dict
+
+
+def _grasp_geometry(tables, grasps, r):
+    """Ball contact points and centres in O for each grasp: ``(G, 2, 3)`` points, normals (outward)."""
+    con = tables["contacts"]
+    p = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    c = np.stack([grasps["contact_left"], grasps["contact_right"]], axis=1)
+    return p[c], n[c]
+
+
+def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True)):
+    """IK and collisions along object trajectories with both balls on their contacts.
+
+    Parameters
+    ----------
+    X_traj : (E, T, 4, 4) object poses over time for E motions.
+    p_O, n_O : (E, 2, 3) contact points and outward normals (O) of the left and right ball.
+    q0 : (E, 2, n) joint seeds at the first sample.
+    active : which balls follow the object; an inactive arm stays at its seed.
+
+    Returns ``ok (E,)``, ``reason (E,)`` (first failure), ``q (T, E, 2, n)``.
+    """
+    E, T = X_traj.shape[:2]
+    q = np.repeat(q0[None], T, axis=0).copy()
+    reason = np.full(E, "ok", dtype=object)
+    if E == 0:
+        return np.zeros(0, bool), reason.astype(str), q
+    for k, arm in enumerate(("left", "right")):
+        if not active[k]:
+            continue
+        ball_O = p_O[:, k] + ball_radius * n_O[:, k]
+        targets = np.einsum("etij,ej->tei", X_traj[..., :3, :3], ball_O) + np.swapaxes(X_traj[..., :3, 3], 0, 1)
+        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step)
+        q[:, :, k] = res.q
+        bad = ~res.ok
+        first = np.argmax(bad, axis=0)
+        failed = bad.any(axis=0) & (reason == "ok")
+        reason[failed] = res.reason[first[failed], np.flatnonzero(failed)]
+    live = np.flatnonzero(reason == "ok")
+    if len(live):
+        ql = q[:, live, 0].reshape(-1, q.shape[-1])
+        qr = q[:, live, 1].reshape(-1, q.shape[-1])
+        X = np.swapaxes(X_traj[live], 0, 1).reshape(-1, 4, 4)
+        touching = np.broadcast_to(np.asarray(active, bool), (len(ql), 2))
+        ok, why = collide(ql, qr, X, touching)
+        ok = ok.reshape(T, len(live))
+        why = why.reshape(T, len(live))
+        first = np.argmax(~ok, axis=0)
+        failed = ~ok.all(axis=0)
+        reason[live[failed]] = why[first[failed], np.flatnonzero(failed)]
+    return reason == "ok", reason.astype(str), q
+
+
+def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph:
+    """Nodes and edges with their checks (module docstring)."""
+    t0 = time.perf_counter()
+    model, tables = load_object_model(analysis_dir)
+    sd = Path(sample_dir)
+    ps = artifacts.read_table(sd / "poses.parquet", "poses")
+    links = artifacts.read_table(sd / "pose_links.parquet", "pose_links")
+    grasps = artifacts.read_table(sd / "grasps.parquet", "grasps")
+    X_WO = se3.matrix_from_columns(ps.columns)
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    collide = make_scene_collision_fn(scene, robot, tables["mesh"])
+    r = scene.robot.ball_radius
+    w = scene.planner.weights
+    G = len(grasps)
+    q_g = np.stack([np.stack(list(grasps["q_left"])), np.stack(list(grasps["q_right"]))], axis=1) if G else \
+        np.zeros((0, 2, robot.arm("left").dof))
+    p_g, n_g = _grasp_geometry(tables, grasps, r)
+
+    # Nodes: grasp nodes first (node id = grasp id), then one free node per kept SP pose.
+    kept_sp = np.flatnonzero((ps["status"] == "ok") & (ps["support"] == "SP"))
+    free_of_pose = -np.ones(len(ps), np.int64)
+    free_of_pose[kept_sp] = G + np.arange(len(kept_sp))
+    nodes = {
+        "node_id": np.arange(G + len(kept_sp)),
+        "kind": np.array(["grasp"] * G + ["free"] * len(kept_sp)),
+        "pose_id": np.concatenate([grasps["pose_id"], kept_sp]).astype(np.int64),
+        "grasp_id": np.concatenate([np.arange(G), -np.ones(len(kept_sp), np.int64)]),
+        "support": np.concatenate([ps["support"][grasps["pose_id"]], ps["support"][kept_sp]]).astype(str),
+    }
+    edges: list[tuple] = []  # (a, b, primitive, weight, status, vertex, edge_v0, edge_v1, arm)
+
+    # --- regrasp edges ------------------------------------------------------------------------
+    sp_grasp = ps["support"][grasps["pose_id"]] == "SP"
+    for gi in np.flatnonzero(sp_grasp):  # one free-node edge per SP grasp
+        edges.append((gi, free_of_pose[grasps["pose_id"][gi]], "regrasp", w.regrasp / 2, "ok", -1, -1, -1, "both"))
+    usp_ids = np.flatnonzero(~sp_grasp)
+    for k, arm in ((0, "left"), (1, "right")):
+        hold = grasps["margin_hold_left" if k == 0 else "margin_hold_right"]
+        key = np.stack([grasps["pose_id"][usp_ids], (grasps["contact_left"] if k == 0 else
+                                                     grasps["contact_right"])[usp_ids]], axis=1)
+        order = np.lexsort((usp_ids, key[:, 1], key[:, 0]))
+        ids, key = usp_ids[order], key[order]
+        bounds = np.flatnonzero(np.any(np.diff(key, axis=0) != 0, axis=1)) + 1
+        for group in np.split(ids, bounds):  # grasps of one USP pose sharing this ball's contact
+            for i in range(len(group)):
+                for j in range(i + 1, len(group)):
+                    a, b = group[i], group[j]
+                    status = "ok" if hold[a] >= 0 else "unstable"
+                    mover = "right" if arm == "left" else "left"
+                    edges.append((a, b, "regrasp", w.regrasp, status, -1, -1, -1, mover))
+    t1 = time.perf_counter()
+
+    # --- pivot edges --------------------------------------------------------------------------
+    by_pose: dict[int, dict[tuple, int]] = {}
+    for gi in range(G):
+        by_pose.setdefault(int(grasps["pose_id"][gi]), {})[(int(grasps["contact_left"][gi]),
+                                                            int(grasps["contact_right"][gi]))] = gi
+    cand = []  # (grasp_a, grasp_b, link)
+    for li in np.flatnonzero(links["primitive"] == "pivot"):
+        a, b = int(links["pose_a"][li]), int(links["pose_b"][li])
+        ga, gb = by_pose.get(a, {}), by_pose.get(b, {})
+        for key, gi in ga.items():
+            if key in gb:
+                cand.append((gi, gb[key], li))
+    cand = np.array(cand, dtype=np.int64).reshape(-1, 3)
+    status = np.full(len(cand), "ok", dtype=object)
+    v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
+    piv_a = [set(grasps["pivot_vertices"][gi].tolist()) for gi in range(G)]
+    for i, (ga, gb, _) in enumerate(cand):  # set lookups, one per candidate
+        if v[i] not in piv_a[ga] or v[i] not in piv_a[gb]:
+            status[i] = "unstable"
+    live = np.flatnonzero(status == "ok")
+    if len(live):
+        trajs = []
+        for i in live:  # one reference per candidate (a few dozen samples each)
+            ga, gb, li = cand[i]
+            Xa, Xb = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]]
+            p0 = se3.transform_points(Xa, model.vertices[v[i]])
+            _, Xr, _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
+                                           params.check_durations, p_com_O=model.com)
+            trajs.append(Xr)
+        T = min(len(x) for x in trajs)
+        X_traj = np.stack([x[:T] for x in trajs])
+        ok, why, _ = check_arm_motion(robot, collide, X_traj, p_g[cand[live, 0]], n_g[cand[live, 0]],
+                                      q_g[cand[live, 0]], r, params)
+        status[live] = why
+        # Equilibrium on the vertex at the largest tilt (middle of the path) with both balls.
+        live2 = live[ok]
+        if len(live2):
+            Xm = X_traj[ok][:, T // 2]
+            ga = cand[live2, 0]
+            pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], p_g[ga]) + Xm[:, None, :3, 3]
+            nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], n_g[ga])
+            p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
+            res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
+                                     pts, nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
+                                     stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
+                                                      f_max=scene.robot.max_eef_force), compute_margin=False)
+            status[live2[~res.stable]] = "unstable"
+    for i, (ga, gb, _) in enumerate(cand):
+        edges.append((ga, gb, "pivot", w.pivot, str(status[i]), int(v[i]), -1, -1, "both"))
+    t2 = time.perf_counter()
+
+    # --- tumble edges -------------------------------------------------------------------------
+    con = tables["contacts"]
+    pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    for li in np.flatnonzero(links["primitive"] == "tumble"):  # tens of tumbles
+        a, b = int(links["pose_a"][li]), int(links["pose_b"][li])
+        e0, e1 = int(links["edge_v0"][li]), int(links["edge_v1"][li])
+        if ps["support"][a] != "SP":
+            continue  # tumbling out of USP is not modelled: its holding ball would have to push
+        arm, found, _ = pusher_motion(robot, collide, model, X_WO[a], X_WO[b], e0, e1, pc, nc, r, params)
+        pusher, why = (arm, "ok") if arm is not None else ("none", found)
+        src = free_of_pose[a]
+        if ps["support"][b] == "SP":
+            edges.append((src, free_of_pose[b], "tumble", w.tumble, why, -1, e0, e1, pusher))
+            continue
+        catcher_hold = {"left": grasps["margin_hold_right"], "right": grasps["margin_hold_left"]}
+        for gb in by_pose.get(b, {}).values():
+            st = why
+            if st == "ok" and not catcher_hold[pusher][gb] >= 0:
+                st = "unstable"
+            edges.append((src, gb, "tumble", w.tumble, st, -1, e0, e1, pusher))
+    t3 = time.perf_counter()
+
+    E = len(edges)
+    cols = list(zip(*edges, strict=True)) if E else [[]] * 9
+    edge_cols = {
+        "edge_id": np.arange(E),
+        "node_a": np.array(cols[0], dtype=np.int64),
+        "node_b": np.array(cols[1], dtype=np.int64),
+        "primitive": np.array(cols[2], dtype=str),
+        "weight": np.array(cols[3], dtype=float),
+        "status": np.array(cols[4], dtype=str),
+        "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool),
+        "vertex": np.array(cols[5], dtype=np.int64),
+        "edge_v0": np.array(cols[6], dtype=np.int64),
+        "edge_v1": np.array(cols[7], dtype=np.int64),
+        "arm": np.array(cols[8], dtype=str),
+    }
+    st, ct = np.unique(edge_cols["status"], return_counts=True)
+    summary = {
+        "nodes": {"grasp": int(G), "free": int(len(kept_sp))},
+        "edges": {p: {"ok": int(((edge_cols["primitive"] == p) & (edge_cols["status"] == "ok")).sum()),
+                      "rejected": int(((edge_cols["primitive"] == p) & (edge_cols["status"] != "ok")).sum())}
+                  for p in ("pivot", "regrasp", "tumble")},
+        "reasons": {str(s): int(c) for s, c in zip(st, ct, strict=True) if s != "ok"},
+    }
+    timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
+    return Graph(nodes, edge_cols, summary, timings)
+
+
+def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):
+    """A ball that can push the object over hull edge (e0, e1) from ``Xa`` toward ``Xb`` (§5.2.2).
+
+    Candidate contacts (``pc``, ``nc``: all contacts and outward normals, O) are those whose inward
+    normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's
+    side of the object, largest lever arm first. Each is followed for ``push_angle`` of the rotation
+    with IK from a fresh solution and checked for collisions, the other arm at its rest posture.
+
+    Returns ``(arm, contact, q (T, n))`` for the first that works, or ``(None, reason, None)`` with
+    the most common failure.
+    """
+    pa, pb = se3.transform_points(Xa, model.vertices[[e0, e1]])
+    axis = (pb - pa) / np.linalg.norm(pb - pa)
+    R_rel = Xb[:3, :3] @ Xa[:3, :3].T
+    if np.dot(se3.quat_from_matrix(R_rel)[:3], axis) < 0:
+        axis = -axis  # rotate toward Xb
+    p_W = se3.transform_points(Xa, pc)
+    n_W = se3.rotate_vectors(Xa, nc)
+    motion = np.cross(axis, p_W - pa)
+    lever = np.linalg.norm(motion, axis=1)
+    cosang = np.einsum("ij,ij->i", -n_W, motion) / np.maximum(lever, 1e-12)
+    good = np.flatnonzero((cosang > np.cos(params.push_cone)) & (n_W[:, 2] > -0.5))
+    good = good[np.argsort(-lever[good], kind="stable")]
+    angles = np.linspace(0.0, params.push_angle, params.push_samples)
+    X_traj = se3.transform_about_line(pa, axis, angles) @ Xa  # (T, 4, 4)
+    reasons = []
+    for arm in arms:
+        k = 0 if arm == "left" else 1
+        side = p_W[good, 1] >= Xa[1, 3] if arm == "left" else p_W[good, 1] <= Xa[1, 3]
+        c = good[side][: params.push_candidates]
+        if len(c) == 0:
+            reasons.append("no_pusher_contact")
+            continue
+        seed = robot.ik(arm, p_W[c] + r * n_W[c], rng=np.random.default_rng(0), restarts=1, tol=params.ik_tol)
+        if not seed.ok.any():
+            reasons.extend(seed.reason[~seed.ok].tolist())
+            continue
+        c, q0 = c[seed.ok], seed.q[seed.ok]
+        other = robot.arm("right" if arm == "left" else "left")
+        q0_both = np.repeat(other.q_rest[None, None], len(c), axis=0).repeat(2, axis=1)
+        q0_both[:, k] = q0
+        p_O = np.repeat(pc[c][:, None], 2, axis=1)
+        n_O = np.repeat(nc[c][:, None], 2, axis=1)
+        active = (True, False) if arm == "left" else (False, True)
+        ok, why, q = check_arm_motion(robot, collide, np.broadcast_to(X_traj, (len(c),) + X_traj.shape),
+                                      p_O, n_O, q0_both, r, params, active=active)
+        if ok.any():
+            i = int(np.argmax(ok))
+            return arm, int(c[i]), q[:, i, k]
+        reasons.extend(why.tolist())
+    if not reasons:
+        return None, "no_pusher_contact", None
+    vals, counts = np.unique(np.array(reasons, dtype=str), return_counts=True)
+    return None, str(vals[np.argmax(counts)]), None
+
+
+NODE_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("grasp_id", "id"),
+               Field("support")]
+EDGE_FIELDS = [Field("edge_id", "id"), Field("node_a", "id"), Field("node_b", "id"), Field("primitive"),
+               Field("weight"), Field("status"), Field("directed"), Field("vertex", "id"), Field("edge_v0", "id"),
+               Field("edge_v1", "id"), Field("arm")]
+
+
+def run(scene_path, analysis_dir, sample_dir, out_dir, params: Params, producer: str = "graph") -> Graph:
+    """Build the graph of ``scene_path`` from its analysis and samples; write it into ``out_dir``."""
+    scene = load_scene(scene_path)
+    graph = build_graph(scene, analysis_dir, sample_dir, params)
+    out = Path(out_dir)
+    meta_params = {**asdict(params), "weights": asdict(scene.planner.weights), "tilt": scene.planner.tilt}
+    inputs = {"scene": scene_path, "poses": Path(sample_dir) / "poses.parquet",
+              "grasps": Path(sample_dir) / "grasps.parquet", "pose_links": Path(sample_dir) / "pose_links.parquet"}
+    artifacts.write_table(out / "nodes.parquet", graph.nodes, NODE_FIELDS,
+                          artifacts.make_meta("nodes", meta_params, inputs, producer))
+    artifacts.write_table(out / "edges.parquet", graph.edges, EDGE_FIELDS,
+                          artifacts.make_meta("edges", meta_params, inputs, producer))
+    artifacts.write_json(out / "graph.json", graph.summary, artifacts.make_meta("graph", meta_params, inputs, producer))
+    artifacts.write_timings(out / "graph.json", graph.timings)
+    return graph

@@ -1,0 +1,335 @@
+"""Stage ``plan``: search the grasp-augmented graph, check the motions lazily, backtrack (§5.3).
+
+The graph (``stages.graph``) is searched with Dijkstra (networkx) from the start's free node to the
+goal's free node. The cheapest path is then checked at the motion level, in order, carrying the
+robot's actual joint configuration along (it starts at the home posture, all joints zero):
+
+- **regrasp** (node → free → node in SP; node → node in USP): a collision-free transit of each
+  moving arm from its current configuration to the new grasp's IK solution, with retreat and
+  approach along the contact normals (``stages.transit``, OMPL's RRT-Connect). In SP the left arm
+  moves, then the right; in USP only the arm the edge names, while the other holds.
+- **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
+  flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
+  friction and force constraints; ``mpc_infeasible`` is a failure like any other.
+- **tumble**: the pusher's transit to its contact, and the push along the rotation.
+
+The first failing edge is removed (both directions for undirected ones), the removal and its reason
+are logged, and the search runs again, until a path passes or none is left. Ablations (the paper's
+comparisons): ``no_regrasp`` keeps only the first grasp and the final release (the graph MPC gait of
+[3]); when the goal is then out of reach the plan goes to the reachable pose nearest the goal and
+reports the remaining error, as Table 2 does; ``no_tumble`` and ``no_usp`` drop those edges or nodes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+
+from stages import artifacts, mpc, se3, transit
+from stages.graph import Params as GraphParams
+from stages.graph import check_arm_motion
+from stages.objectmodel import load_object_model
+from stages.robot import load_robot
+from stages.sample import make_scene_collision_fn
+from stages.scene import Scene, load_scene
+
+
+@dataclass(frozen=True)
+class Params:
+    """Planner options (ablations, backtracking budget, motion-level settings)."""
+
+    no_regrasp: bool = False
+    no_tumble: bool = False
+    no_usp: bool = False
+    #: Edges removed at most before giving up.
+    max_removals: int = 400
+    #: Run the MPC on every pivot of a candidate path.
+    check_mpc: bool = True
+    #: Durations (s) of tilt, rotate, lower of a pivot and of a tumble.
+    pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
+    tumble_duration: float = 4.0
+    transit: transit.Params = field(default_factory=transit.Params)
+    mpc: mpc.Params = field(default_factory=mpc.Params)
+
+
+@dataclass
+class _State:
+    """Where the robot is while a path is walked."""
+
+    q: dict  # arm -> (n,) joints
+    normal: dict  # arm -> (3,) outward contact normal (W) when the ball touches, else None
+    X_WO: np.ndarray
+
+
+class _Context:
+    """Everything the motion checks need, loaded once."""
+
+    def __init__(self, scene: Scene, analysis_dir, sample_dir, graph_dir):
+        self.scene = scene
+        self.model, self.tables = load_object_model(analysis_dir)
+        sd, gd = Path(sample_dir), Path(graph_dir)
+        self.poses = artifacts.read_table(sd / "poses.parquet", "poses")
+        self.grasps = artifacts.read_table(sd / "grasps.parquet", "grasps")
+        self.sample = artifacts.read_json(sd / "sample.json", "sample")
+        self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
+        self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
+        self.X_WO = se3.matrix_from_columns(self.poses.columns)
+        self.robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+        self.collide = make_scene_collision_fn(scene, self.robot, self.tables["mesh"])
+        con = self.tables["contacts"]
+        self.p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+        self.n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+        self.q_grasp = {
+            "left": np.stack(list(self.grasps["q_left"])) if len(self.grasps) else np.zeros((0, 7)),
+            "right": np.stack(list(self.grasps["q_right"])) if len(self.grasps) else np.zeros((0, 7)),
+        }
+        self.inputs = {"scene": scene.path, "nodes": gd / "nodes.parquet", "edges": gd / "edges.parquet",
+                       "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet"}
+
+    def contact(self, grasp: int, arm: str) -> int:
+        return int(self.grasps["contact_left" if arm == "left" else "contact_right"][grasp])
+
+
+def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, int]:
+    """The DiGraph of ok edges after the ablations, with the start and goal free nodes."""
+    nodes, edges = ctx.nodes, ctx.edges
+    free = {int(p): int(n) for n, p, k in zip(nodes["node_id"], nodes["pose_id"], nodes["kind"], strict=True)
+            if k == "free"}
+    start = free.get(0, -1)
+    goal = free.get(int(ctx.sample["goal"]["pose_id"]), -1)
+    G = nx.DiGraph()
+    G.add_nodes_from(nodes["node_id"].tolist())
+    usp = nodes["support"] == "USP"
+    for i in np.flatnonzero(edges["status"] == "ok"):  # a few thousand edges
+        a, b, prim = int(edges["node_a"][i]), int(edges["node_b"][i]), str(edges["primitive"][i])
+        if params.no_tumble and prim == "tumble":
+            continue
+        if params.no_usp and (usp[a] or usp[b]):
+            continue
+        data = {"weight": float(edges["weight"][i]), "edge_id": int(i), "primitive": prim}
+        if params.no_regrasp and prim == "regrasp":
+            # Only the first grasp (out of the start's free node) and the final release (into the goal's).
+            if a == start or b == goal:
+                G.add_edge(a, b, **data)
+            if b == start or a == goal:
+                G.add_edge(b, a, **data)
+            continue
+        G.add_edge(a, b, **data)
+        if not edges["directed"][i]:
+            G.add_edge(b, a, **data)
+    return G, start, goal
+
+
+def _transit(ctx: _Context, params: Params, state: _State, arm: str, q_goal, n_goal):
+    other = "right" if arm == "left" else "left"
+    return transit.plan_transit(ctx.robot, ctx.collide, arm, state.q[arm], q_goal, state.q[other], state.X_WO,
+                                params.transit, n_start=state.normal[arm], n_goal=n_goal)
+
+
+def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict, path_edges: list):
+    """Check one edge of the path from ``state``; returns ``(ok, reason, step dict, new state)``."""
+    nodes = ctx.nodes
+    prim = data["primitive"]
+    pu, pv = int(nodes["pose_id"][u]), int(nodes["pose_id"][v])
+    gv = int(nodes["grasp_id"][v])
+    gu = int(nodes["grasp_id"][u])
+    step = {"primitive": prim, "edge_id": data["edge_id"], "node_from": u, "node_to": v, "pose_from": pu,
+            "pose_to": pv, "support": str(nodes["support"][v])}
+    if prim == "regrasp":
+        if nodes["kind"][v] == "free":  # release: the balls stay, backing off at the next transit
+            step["arms"] = []
+            return True, "ok", step, state
+        arms = ["left", "right"] if nodes["kind"][u] == "free" else [
+            str(ctx.edges["arm"][data["edge_id"]])]
+        new = _State(dict(state.q), dict(state.normal), state.X_WO)
+        paths = {}
+        for arm in arms:
+            c = ctx.contact(gv, arm)
+            n_goal = se3.rotate_vectors(new.X_WO, ctx.n_O[c])
+            res = _transit(ctx, params, new, arm, ctx.q_grasp[arm][gv], n_goal)
+            if res.status != "ok":
+                return False, res.status, step, state
+            paths[arm] = res.path
+            new.q[arm] = res.path[-1]
+            new.normal[arm] = n_goal
+        step.update(arms=arms, grasp_to=gv, transit={a: p.tolist() for a, p in paths.items()},
+                    contacts={a: ctx.contact(gv, a) for a in ("left", "right")})
+        return True, "ok", step, new
+    if prim == "pivot":
+        vtx = int(ctx.edges["vertex"][data["edge_id"]])
+        Xa, Xb = ctx.X_WO[pu], ctx.X_WO[pv]
+        p0 = se3.transform_points(Xa, ctx.model.vertices[vtx])
+        t, Xr, phase = mpc.pivot_reference(Xa, Xb, p0, ctx.scene.planner.tilt, params.mpc.dt,
+                                           params.pivot_durations, p_com_O=ctx.model.com)
+        cl, cr = ctx.contact(gu, "left"), ctx.contact(gu, "right")
+        p_c, n_c = ctx.p_O[[cl, cr]], ctx.n_O[[cl, cr]]
+        q0 = np.stack([state.q["left"], state.q["right"]])[None]
+        every = max(1, int(round(0.1 / params.mpc.dt)))  # IK and collisions every 0.1 s of the motion
+        sub = np.unique(np.r_[np.arange(0, len(Xr), every), len(Xr) - 1])
+        ok, why, q = check_arm_motion(ctx.robot, ctx.collide, Xr[sub][None], p_c[None], n_c[None], q0,
+                                      ctx.scene.robot.ball_radius, GraphParams())
+        if not ok[0]:
+            return False, str(why[0]), step, state
+        if params.check_mpc:
+            summ = ctx.tables["summary"]
+            res = mpc.run_pivot_mpc(ctx.scene.object.mass, np.asarray(summ["inertia"]), ctx.model.com, p_c, -n_c,
+                                    p0, t, Xr, _mpc_params(ctx, params))
+            if res.status != "ok":
+                return False, "mpc_infeasible", step, state
+            step["mpc_max_error"] = float(np.max(res.tracking_error))
+        new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
+                     {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb)
+        step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
+                    contacts={"left": cl, "right": cr})
+        return True, "ok", step, new
+    # tumble
+    e0, e1 = int(ctx.edges["edge_v0"][data["edge_id"]]), int(ctx.edges["edge_v1"][data["edge_id"]])
+    pusher = str(ctx.edges["arm"][data["edge_id"]])
+    Xa, Xb = ctx.X_WO[pu], ctx.X_WO[pv]
+    found = _push_plan(ctx, Xa, Xb, e0, e1, pusher)
+    if found is None:
+        return False, "no_pusher_contact", step, state
+    c, q_push = found
+    new = _State(dict(state.q), dict(state.normal), Xa)
+    res = _transit(ctx, params, new, pusher, q_push[0], se3.rotate_vectors(Xa, ctx.n_O[c]))
+    if res.status != "ok":
+        return False, res.status, step, state
+    new.q[pusher] = q_push[-1]
+    new.normal[pusher] = None
+    new.X_WO = Xb
+    step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit={pusher: res.path.tolist()})
+    if nodes["kind"][v] == "grasp":  # into USP: the catcher holds, then the pusher takes its contact
+        catcher = "right" if pusher == "left" else "left"
+        for arm in (catcher, pusher):
+            cg = ctx.contact(gv, arm)
+            n_goal = se3.rotate_vectors(Xb, ctx.n_O[cg])
+            res = _transit(ctx, params, new, arm, ctx.q_grasp[arm][gv], n_goal)
+            if res.status != "ok":
+                return False, res.status, step, state
+            new.q[arm], new.normal[arm] = res.path[-1], n_goal
+            step["transit"][f"{arm}_after"] = res.path.tolist()
+        step["grasp_to"] = gv
+    return True, "ok", step, new
+
+
+def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
+    """The pusher's contact and joint path for a tumble (see ``stages.graph._find_pusher``)."""
+    from stages.graph import pusher_motion
+
+    found, c, q = pusher_motion(ctx.robot, ctx.collide, ctx.model, Xa, Xb, e0, e1, ctx.p_O, ctx.n_O,
+                                ctx.scene.robot.ball_radius, GraphParams(), arms=(arm,))
+    return None if found is None else (c, q)
+
+
+def _mpc_params(ctx: _Context, params: Params) -> mpc.Params:
+    from dataclasses import replace
+
+    return replace(params.mpc, mu_eef=ctx.scene.object.friction, mu_table=ctx.scene.table.friction,
+                   f_max=ctx.scene.robot.max_eef_force)
+
+
+def _yaw_between(Xa, Xb) -> float:
+    return float(se3.yaw_of(Xb[:3, :3] @ Xa[:3, :3].T))
+
+
+def search(ctx: _Context, params: Params) -> dict:
+    """Search, check lazily, backtrack; returns the plan dict (status, steps, log, counts, cost)."""
+    G, start, goal = build_search_graph(ctx, params)
+    log: list[dict] = []
+    partial = None
+    if start < 0:
+        return {"status": "infeasible", "reason": "start pose has no free node (not SP)", "steps": [], "log": log}
+    target = goal
+    if goal < 0 or not nx.has_path(G, start, goal):
+        if not params.no_regrasp or goal < 0:
+            reason = "goal not reached by the pose sampler" if goal < 0 else "no path in the graph"
+            return {"status": "infeasible", "reason": reason, "steps": [], "log": log}
+        target, partial = _nearest_reachable(ctx, G, start)
+    home = np.zeros(ctx.robot.arm("left").dof)
+    removals = 0
+    while True:
+        try:
+            path = nx.shortest_path(G, start, target, weight="weight")
+        except nx.NetworkXNoPath:
+            if params.no_regrasp and partial is None and ctx.nodes["kind"][target] == "free":
+                target, partial = _nearest_reachable(ctx, G, start)
+                continue
+            return {"status": "infeasible", "reason": "no path left after backtracking", "steps": [], "log": log}
+        state = _State({"left": home.copy(), "right": home.copy()}, {"left": None, "right": None},
+                       ctx.X_WO[int(ctx.nodes["pose_id"][start])])
+        steps = []
+        failed = None
+        for u, v in zip(path[:-1], path[1:], strict=True):  # the path's few dozen edges
+            data = G.edges[u, v]
+            ok, why, step, state = _check_step(ctx, params, state, u, v, data, steps)
+            if not ok:
+                failed = (u, v, data, why)
+                break
+            steps.append(step)
+        if failed is None:
+            cost = float(sum(G.edges[u, v]["weight"] for u, v in zip(path[:-1], path[1:], strict=True)))
+            counts = {p: sum(s["primitive"] == p for s in steps) for p in ("pivot", "tumble")}
+            # A regrasp changes a grasp: the first grasp out of the start's free node is not one.
+            counts["regrasp"] = sum(1 for s in steps if s["primitive"] == "regrasp" and s.get("arms")
+                                    and s["node_from"] != start)
+            out = {"status": "partial" if partial else "ok", "steps": steps, "log": log, "cost": cost,
+                   "counts": counts, "nodes": [int(n) for n in path]}
+            if partial:
+                out["remaining_error"] = partial
+            return out
+        u, v, data, why = failed
+        log.append({"edge_id": data["edge_id"], "primitive": data["primitive"], "node_a": int(u), "node_b": int(v),
+                    "reason": why})
+        G.remove_edge(u, v)
+        if not ctx.edges["directed"][data["edge_id"]] and G.has_edge(v, u):
+            G.remove_edge(v, u)
+        removals += 1
+        if removals >= params.max_removals:
+            return {"status": "infeasible", "reason": f"gave up after {removals} removed edges", "steps": [],
+                    "log": log}
+
+
+def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, dict]:
+    """The reachable node whose object pose is nearest the goal, and the remaining error to it."""
+    reach = nx.single_source_dijkstra_path_length(G, start, weight="weight")
+    goal_X = _goal_pose(ctx)
+    com_goal = se3.transform_points(goal_X, ctx.model.com)
+    best, best_d = start, np.inf
+    for n in sorted(reach):  # every reachable node once
+        X = ctx.X_WO[int(ctx.nodes["pose_id"][n])]
+        d = float(np.linalg.norm(se3.transform_points(X, ctx.model.com)[:2] - com_goal[:2]))
+        if d < best_d - 1e-12:
+            best, best_d = n, d
+    X = ctx.X_WO[int(ctx.nodes["pose_id"][best])]
+    err = se3.transform_points(X, ctx.model.com) - com_goal
+    return best, {"x": float(err[0]), "y": float(err[1]), "distance": best_d,
+                  "yaw": float(_yaw_between(goal_X, X))}
+
+
+def _goal_pose(ctx: _Context) -> np.ndarray:
+    from stages.sample import placement_pose
+
+    X, _ = placement_pose(ctx.scene.goal, ctx.model, "goal")
+    return X
+
+
+def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Params, producer: str = "plan") -> dict:
+    """Plan and write ``plan.json`` (status ok, partial or infeasible); returns the plan dict."""
+    t0 = time.perf_counter()
+    scene = load_scene(scene_path)
+    ctx = _Context(scene, analysis_dir, sample_dir, graph_dir)
+    plan = search(ctx, params)
+    elapsed = time.perf_counter() - t0
+    meta_params = {**asdict(params), "weights": asdict(scene.planner.weights)}
+    meta = artifacts.make_meta("plan", meta_params, ctx.inputs, producer)
+    for s in plan["steps"]:
+        for key in ("pose_from", "pose_to"):
+            s[key.replace("pose", "X_WO")] = se3.columns_from_matrix(ctx.X_WO[s[key]])
+    artifacts.write_json(out_path, plan, meta)
+    artifacts.write_timings(out_path, {"plan": elapsed})
+    plan["time"] = elapsed
+    return plan

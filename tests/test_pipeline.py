@@ -1,0 +1,115 @@
+"""sample → graph → plan → mpc on a small scene: every kept grasp, edge and step satisfies what it claims."""
+
+import numpy as np
+import pytest
+
+from stages import artifacts, se3, stability
+from stages.objectmodel import load_object_model
+from stages.robot import load_robot
+from stages.sample import make_scene_collision_fn, placement_pose
+from stages.scene import load_scene
+
+
+@pytest.fixture(scope="module")
+def ctx(small_build):
+    scene_path, b = small_build
+    scene = load_scene(scene_path)
+    model, tables = load_object_model(b / "analysis")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    return scene, b, model, tables, robot
+
+
+def test_grasps_are_reached_collision_free_and_stable(ctx):
+    scene, b, model, tables, robot = ctx
+    ps = artifacts.read_table(b / "sample" / "poses.parquet", "poses")
+    gr = artifacts.read_table(b / "sample" / "grasps.parquet", "grasps")
+    assert len(gr) > 50
+    X = se3.matrix_from_columns(ps.columns)[gr["pose_id"]]
+    con = tables["contacts"]
+    p = np.stack([con["px"], con["py"], con["pz"]], 1)
+    n = np.stack([con["nx"], con["ny"], con["nz"]], 1)
+    r = scene.robot.ball_radius
+    ql, qr = np.stack(list(gr["q_left"])), np.stack(list(gr["q_right"]))
+    for arm, q, c in (("left", ql, gr["contact_left"]), ("right", qr, gr["contact_right"])):
+        target = se3.transform_points(X, p[c] + r * n[c])
+        # IK tolerance 1 mm (sample.Params.ik_tol).
+        assert np.linalg.norm(robot.eef_position(arm, q) - target, axis=1).max() <= 1e-3 + 1e-9
+        a = robot.arm(arm)
+        assert ((q >= a.lower - 1e-9) & (q <= a.upper + 1e-9)).all()
+    ok, why = make_scene_collision_fn(scene, robot, tables["mesh"])(ql, qr, X, np.ones((len(gr), 2), bool))
+    assert ok.all(), why[~ok][:3]
+    # The left ball takes the contact with the larger world y.
+    yl = se3.transform_points(X, p[gr["contact_left"]])[:, 1]
+    yr = se3.transform_points(X, p[gr["contact_right"]])[:, 1]
+    assert (yl >= yr - 1e-12).all()
+    # SP grasps can pivot on each recorded vertex: the LP agrees.
+    sp = np.flatnonzero(ps["support"][gr["pose_id"]] == "SP")[:40]
+    rows = [(i, v) for i in sp for v in gr["pivot_vertices"][i]]
+    assert rows
+    i, v = np.array(rows).T
+    Xi = X[i]
+    cl, cr = gr["contact_left"][i], gr["contact_right"][i]
+    pts = np.stack([se3.transform_points(Xi, p[cl]), se3.transform_points(Xi, p[cr])], 1)
+    nrm = -np.stack([se3.rotate_vectors(Xi, n[cl]), se3.rotate_vectors(Xi, n[cr])], 1)
+    res = stability.evaluate(scene.object.mass, se3.transform_points(Xi, model.com),
+                             se3.transform_points(Xi, model.vertices[v])[:, None], None, pts, nrm, None,
+                             float(np.linalg.norm(tables["summary"]["extents"]) / 2),
+                             stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
+                                              f_max=scene.robot.max_eef_force), compute_margin=False)
+    assert res.stable.all()
+
+
+def test_rejects_carry_known_reason_codes(ctx):
+    _, b, *_ = ctx
+    rej = artifacts.read_table(b / "sample" / "grasp_rejects.parquet", "grasp_rejects")
+    known = ("eef_under_object", "normal_away", "ik_unreachable", "joint_limit", "env_collision:", "self_collision:",
+             "unstable")
+    assert len(rej) > 0
+    assert all(str(r).startswith(known) for r in rej["reason"])
+
+
+def test_graph_edges_are_consistent_with_their_nodes(ctx):
+    _, b, *_ = ctx
+    nodes = artifacts.read_table(b / "graph" / "nodes.parquet", "nodes")
+    edges = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    gr = artifacts.read_table(b / "sample" / "grasps.parquet", "grasps")
+    ok = edges["status"] == "ok"
+    piv = ok & (edges["primitive"] == "pivot")
+    assert piv.sum() > 10
+    a, c = edges["node_a"][piv], edges["node_b"][piv]
+    # A pivot keeps the grasp: same contacts at both ends, different poses.
+    assert (gr["contact_left"][a] == gr["contact_left"][c]).all()
+    assert (gr["contact_right"][a] == gr["contact_right"][c]).all()
+    assert (nodes["pose_id"][a] != nodes["pose_id"][c]).all()
+    reg = ok & (edges["primitive"] == "regrasp")
+    # A regrasp keeps the pose.
+    assert (nodes["pose_id"][edges["node_a"][reg]] == nodes["pose_id"][edges["node_b"][reg]]).all()
+    w = {"pivot": 0.1, "regrasp": 0.5, "tumble": 1.0}
+    for prim, weight in w.items():
+        sel = edges["primitive"] == prim
+        expect = weight / 2 if prim == "regrasp" else weight
+        kinds = nodes["kind"][edges["node_b"][sel]]
+        if prim == "regrasp":  # grasp <-> free edges carry half the regrasp weight
+            half = kinds == "free"
+            assert np.allclose(edges["weight"][sel][half], expect)
+        else:
+            assert np.allclose(edges["weight"][sel], expect)
+
+
+def test_plan_reaches_the_goal_with_exact_pivots(ctx):
+    scene, b, model, tables, robot = ctx
+    plan = artifacts.read_json(b / "plan.json", "plan")
+    assert plan["status"] == "ok"
+    steps = plan["steps"]
+    assert steps[0]["primitive"] == "regrasp"  # the first grasp
+    X_goal, _ = placement_pose(scene.goal, model, "goal")
+    last = se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in steps[-1]["X_WO_to"].items()})[0]
+    np.testing.assert_allclose(last, X_goal, atol=1e-6)  # the goal is reached exactly, not approximately
+    for s in steps:
+        if s["primitive"] != "pivot":
+            continue
+        Xa = se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in s["X_WO_from"].items()})[0]
+        Xb = se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in s["X_WO_to"].items()})[0]
+        v = model.vertices[s["vertex"]]
+        np.testing.assert_allclose(se3.transform_points(Xa, v), se3.transform_points(Xb, v), atol=1e-9)
+    assert plan["counts"]["pivot"] == sum(s["primitive"] == "pivot" for s in steps)
