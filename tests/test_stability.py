@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from stages import se3
+from stages import se3, stability
 from stages.errors import PivotError
 from stages.stability import (
     Params,
@@ -414,3 +414,15 @@ def test_invariant_under_rigid_motion_about_z():
         np.testing.assert_array_equal(res.rank, base.rank)
         # Rounding of the rotated inputs (1e-16) through LPs solved to 1e-8: 1e-6 relative.
         np.testing.assert_allclose(res.margin, base.margin, rtol=1e-6, atol=1e-9)
+
+
+def test_threaded_evaluation_equals_the_serial_one():
+    import bench.bench_stability as bs
+
+    for case in bs.make_candidates(3000, 1).values():
+        args = [case[k] for k in ("mass", "com_W", "table_pts_W", "table_mask", "eef_pts_W", "eef_normals_W",
+                                  "eef_mask", "L")]
+        a = stability.evaluate(*args, R_WD=case["R_WD"])
+        b = stability.evaluate_threaded(*args, R_WD=case["R_WD"], min_rows=10)
+        for f in ("stable", "margin", "reason", "rank"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
