@@ -228,19 +228,19 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     con = tables["contacts"]
     pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
-    for li in np.flatnonzero(links["primitive"] == "tumble"):  # tens of tumbles
-        a, b = int(links["pose_a"][li]), int(links["pose_b"][li])
-        e0, e1 = int(links["edge_v0"][li]), int(links["edge_v1"][li])
-        if ps["support"][a] != "SP":
-            continue  # tumbling out of USP is not modelled: its holding ball would have to push
-        arm, found, _ = pusher_motion(robot, collide, model, X_WO[a], X_WO[b], e0, e1, pc, nc, r, params)
-        pusher, why = (arm, "ok") if arm is not None else ("none", found)
+    tumbles = [li for li in np.flatnonzero(links["primitive"] == "tumble")
+               if ps["support"][links["pose_a"][li]] == "SP"]  # out of USP its holding ball would have to push
+    la, lb = links["pose_a"][tumbles], links["pose_b"][tumbles]
+    tumble_edges = np.stack([links["edge_v0"][tumbles], links["edge_v1"][tumbles]], axis=1).astype(np.int64)
+    found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params)
+    catcher_hold = {"left": grasps["margin_hold_right"], "right": grasps["margin_hold_left"]}
+    for a, b, (e0, e1), (arm, what, _) in zip(la, lb, tumble_edges, found, strict=True):
+        pusher, why = (arm, "ok") if arm is not None else ("none", what)
         src = free_of_pose[a]
         if ps["support"][b] == "SP":
             edges.append((src, free_of_pose[b], "tumble", w.tumble, why, -1, e0, e1, pusher))
             continue
-        catcher_hold = {"left": grasps["margin_hold_right"], "right": grasps["margin_hold_left"]}
-        for gb in by_pose.get(b, {}).values():
+        for gb in by_pose.get(int(b), {}).values():
             st = why
             if st == "ok" and not catcher_hold[pusher][gb] >= 0:
                 st = "unstable"
@@ -277,57 +277,87 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
 def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):
     """A ball that can push the object over hull edge (e0, e1) from ``Xa`` toward ``Xb`` (§5.2.2).
 
-    Candidate contacts (``pc``, ``nc``: all contacts and outward normals, O) are those whose inward
-    normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's
-    side of the object, largest lever arm first. Each is followed for ``push_angle`` of the rotation
-    with IK from a fresh solution and checked for collisions, the other arm at its rest posture.
-
-    Returns ``(arm, contact, q (T, n))`` for the first that works, or ``(None, reason, None)`` with
-    the most common failure.
+    Returns ``(arm, contact, q (T, n))`` for the first that works, or ``(None, reason, None)``; see
+    :func:`pusher_motions`, which does this for many tumbles at once.
     """
-    pa, pb = se3.transform_points(Xa, model.vertices[[e0, e1]])
-    axis = (pb - pa) / np.linalg.norm(pb - pa)
-    R_rel = Xb[:3, :3] @ Xa[:3, :3].T
-    if np.dot(se3.quat_from_matrix(R_rel)[:3], axis) < 0:
-        axis = -axis  # rotate toward Xb
-    p_W = se3.transform_points(Xa, pc)
-    n_W = se3.rotate_vectors(Xa, nc)
-    motion = np.cross(axis, p_W - pa)
-    lever = np.linalg.norm(motion, axis=1)
-    cosang = np.einsum("ij,ij->i", -n_W, motion) / np.maximum(lever, 1e-12)
-    good = np.flatnonzero((cosang > np.cos(params.push_cone)) & (n_W[:, 2] > -0.5))
-    good = good[np.argsort(-lever[good], kind="stable")]
+    return pusher_motions(robot, collide, model, Xa[None], Xb[None], np.array([[e0, e1]]), pc, nc, r, params,
+                          arms)[0]
+
+
+def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Params, arms=("left", "right")):
+    """Pushers for K tumbles at once: ``Xa, Xb (K, 4, 4)``, ``edges (K, 2)`` hull vertex ids.
+
+    Candidate contacts (``pc``, ``nc``: all contacts and outward normals, O) are those whose inward
+    normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's side
+    of the object, largest lever arm first (``push_candidates`` per arm). Every candidate of every
+    tumble is followed for ``push_angle`` of the rotation with IK from a fresh solution and checked
+    for collisions, the other arm at its rest posture, in one batch per arm.
+
+    Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left
+    before right, then by lever arm), or ``(None, reason, None)`` with the most common failure.
+    """
+    K = len(Xa)
     angles = np.linspace(0.0, params.push_angle, params.push_samples)
-    X_traj = se3.transform_about_line(pa, axis, angles) @ Xa  # (T, 4, 4)
-    reasons = []
-    for arm in arms:
-        k = 0 if arm == "left" else 1
-        side = p_W[good, 1] >= Xa[1, 3] if arm == "left" else p_W[good, 1] <= Xa[1, 3]
-        c = good[side][: params.push_candidates]
-        if len(c) == 0:
-            reasons.append("no_pusher_contact")
+    rows = []  # (tumble, arm index, contact, rank)
+    trajs = []
+    for k in range(K):  # a few dozen tumbles: geometry only, the IK and collisions are batched below
+        pa, pb = se3.transform_points(Xa[k], model.vertices[edges[k]])
+        axis = (pb - pa) / np.linalg.norm(pb - pa)
+        if np.dot(se3.quat_from_matrix(Xb[k][:3, :3] @ Xa[k][:3, :3].T)[:3], axis) < 0:
+            axis = -axis  # rotate toward Xb
+        p_W = se3.transform_points(Xa[k], pc)
+        n_W = se3.rotate_vectors(Xa[k], nc)
+        motion = np.cross(axis, p_W - pa)
+        lever = np.linalg.norm(motion, axis=1)
+        cosang = np.einsum("ij,ij->i", -n_W, motion) / np.maximum(lever, 1e-12)
+        good = np.flatnonzero((cosang > np.cos(params.push_cone)) & (n_W[:, 2] > -0.5))
+        good = good[np.argsort(-lever[good], kind="stable")]
+        trajs.append(se3.transform_about_line(pa, axis, angles) @ Xa[k])
+        for j, arm in enumerate(("left", "right")):
+            if arm not in arms:
+                continue
+            side = p_W[good, 1] >= Xa[k][1, 3] if arm == "left" else p_W[good, 1] <= Xa[k][1, 3]
+            for rank, c in enumerate(good[side][: params.push_candidates]):
+                rows.append((k, j, int(c), rank))
+    rows = np.array(rows, dtype=np.int64).reshape(-1, 4)
+    trajs = np.stack(trajs) if K else np.zeros((0, len(angles), 4, 4))
+    status = np.full(len(rows), "no_pusher_contact", dtype=object)
+    q_path = [None] * len(rows)
+    for j, arm in enumerate(("left", "right")):
+        sel = np.flatnonzero(rows[:, 1] == j)
+        if len(sel) == 0:
             continue
-        seed = robot.ik(arm, p_W[c] + r * n_W[c], rng=np.random.default_rng(0), restarts=1, tol=params.ik_tol)
-        if not seed.ok.any():
-            reasons.extend(seed.reason[~seed.ok].tolist())
-            continue
-        c, q0 = c[seed.ok], seed.q[seed.ok]
+        k, c = rows[sel, 0], rows[sel, 2]
+        X0 = trajs[k, 0]
+        seed = robot.ik(arm, se3.transform_points(X0, pc[c] + r * nc[c]), rng=np.random.default_rng(0), restarts=1,
+                        tol=params.ik_tol)
+        status[sel[~seed.ok]] = seed.reason[~seed.ok]
+        sel, k, c, q0 = sel[seed.ok], k[seed.ok], c[seed.ok], seed.q[seed.ok]
         other = robot.arm("right" if arm == "left" else "left")
-        q0_both = np.repeat(other.q_rest[None, None], len(c), axis=0).repeat(2, axis=1)
-        q0_both[:, k] = q0
+        q0_both = np.repeat(other.q_rest[None, None], len(sel), axis=0).repeat(2, axis=1)
+        q0_both[:, j] = q0
         p_O = np.repeat(pc[c][:, None], 2, axis=1)
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
-        ok, why, q = check_arm_motion(robot, collide, np.broadcast_to(X_traj, (len(c),) + X_traj.shape),
-                                      p_O, n_O, q0_both, r, params, active=active)
-        if ok.any():
-            i = int(np.argmax(ok))
-            return arm, int(c[i]), q[:, i, k]
-        reasons.extend(why.tolist())
-    if not reasons:
-        return None, "no_pusher_contact", None
-    vals, counts = np.unique(np.array(reasons, dtype=str), return_counts=True)
-    return None, str(vals[np.argmax(counts)]), None
+        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active)
+        status[sel] = why
+        for i in np.flatnonzero(ok):
+            q_path[sel[i]] = q[:, i, j]
+    out = []
+    for k in range(K):
+        mine = np.flatnonzero(rows[:, 0] == k)
+        order = mine[np.lexsort((rows[mine, 3], rows[mine, 1]))]
+        win = [i for i in order if status[i] == "ok"]
+        if win:
+            i = win[0]
+            out.append(("left" if rows[i, 1] == 0 else "right", int(rows[i, 2]), q_path[i]))
+            continue
+        if len(mine) == 0:
+            out.append((None, "no_pusher_contact", None))
+            continue
+        vals, counts = np.unique(np.array([str(x) for x in status[mine]]), return_counts=True)
+        out.append((None, str(vals[np.argmax(counts)]), None))
+    return out
 
 
 NODE_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("grasp_id", "id"),
