@@ -19,7 +19,7 @@ B := build/$(SCENE)
 # Code every stage uses: a change here reruns everything.
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench analysis sample plan mpc golden clean
+.PHONY: help install demo test lint bench analysis sample plan mpc execute reproduce golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -56,28 +56,54 @@ GRAPH_CODE := stages/graph.py stages/mpc.py $(SAMPLE_CODE)
 $(B)/graph/graph.json: $(B)/sample/sample.json $(GRAPH_CODE) $(SHARED) | $(INSTALLED)
 	$(PIVOT) graph $(SCENE_FILE) --build $(B)
 
+# A plan variant (VARIANT=no-regrasp, no-tumble or no-usp: the paper's ablations) shares the graph;
+# its plan, trajectories and execution go to $(B)/<variant>/ (the full planner: $(B)/full/).
+VARIANT ?=
+R := $(B)/$(if $(VARIANT),$(VARIANT),full)
+PLAN_FLAGS := $(if $(VARIANT),--$(VARIANT),)
+
 PLAN_CODE := stages/plan.py stages/transit.py stages/connect.py $(GRAPH_CODE)
-# pivot plan exits 1 when no plan exists; plan.json then records why, and Make stops there.
-$(B)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) plan $(SCENE_FILE) --build $(B)
+# pivot plan exits 1 when no plan exists; plan.json still records why, so Make keeps it.
+$(R)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) plan $(SCENE_FILE) --build $(B) --out $@ $(PLAN_FLAGS) || [ $$? -eq 1 ]
 
-$(B)/plan.png: $(B)/plan.json stages/plots.py | $(INSTALLED)
-	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --png $@
+$(R)/plan.png: $(R)/plan.json stages/plots.py | $(INSTALLED)
+	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --plan $< --png $@
 
-plan: $(B)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
+plan: $(R)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
 
-$(B)/trajectories.parquet: $(B)/plan.json stages/trajectory.py $(PLAN_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) mpc $(SCENE_FILE) --build $(B)
+$(R)/trajectories.parquet: $(R)/plan.json stages/trajectory.py $(PLAN_CODE) $(SHARED) | $(INSTALLED)
+	$(PIVOT) mpc $(SCENE_FILE) --build $(B) --plan $< --out $@
 
-$(B)/trajectories.png: $(B)/trajectories.parquet stages/plots.py | $(INSTALLED)
-	$(PIVOT) show trajectories $(B) --scene $(SCENE_FILE) --png $@
+$(R)/trajectories.png: $(R)/trajectories.parquet stages/plots.py | $(INSTALLED)
+	$(PIVOT) show trajectories $< --scene $(SCENE_FILE) --png $@
 
-mpc: $(B)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
+mpc: $(R)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
+
+SEED ?= 0
+$(R)/execution.json: $(R)/trajectories.parquet stages/execute.py $(SHARED) | $(INSTALLED)
+	$(PIVOT) execute $(SCENE_FILE) --build $(B) --trajectories $< --out $(R) --seed $(SEED)
+
+$(R)/execution.png: $(R)/execution.json | $(INSTALLED)
+	$(PIVOT) show execution $(R) --scene $(SCENE_FILE) --png $@
+
+execute: $(R)/execution.png ## run the trajectories in PyBullet physics, storyboard + GIF (Fig. 15-18)
 
 # ------------------------------------------------------------------------------------------ jobs
-FIGURES := $(B)/analysis.png $(B)/poses.png $(B)/plan.png $(B)/trajectories.png
+FIGURES := $(B)/analysis.png $(B)/poses.png $(R)/plan.png $(R)/trajectories.png
 demo: $(INSTALLED) $(FIGURES) ## run the pipeline on the default scene and draw its figures
 	@echo "figures: $(FIGURES)"
+
+SCENES := default exp1_reach exp2_rotate exp3_obstacle
+# Every scene with the full planner and the three ablations; an ablation with no plan (as the paper
+# reports) or a failed execution is recorded in its artifacts, not a reason to stop.
+reproduce: $(INSTALLED) ## all experiment scenes, full planner and ablations, in physics -> build/report/README.md
+	for s in $(SCENES); do \
+	  for v in "" no-regrasp no-tumble no-usp; do \
+	    $(MAKE) --no-print-directory SCENE=$$s VARIANT=$$v execute || true; \
+	  done; \
+	done
+	$(PIVOT) report build --out build/report/README.md
 
 lint: $(INSTALLED) ## ruff
 	$(BIN)/ruff check pivotcli stages tests bench

@@ -71,12 +71,12 @@ def mpc(
     """Recompute the force and joint trajectories of an existing plan with the MPC (§5.2), no replanning."""
     from dataclasses import replace
 
-    from stages import mpc as mpc_core
     from stages import trajectory
 
     b = _dirs(scene, build)
     out = out or b / "trajectories.parquet"
-    params = trajectory.Params(mpc=replace(mpc_core.Params(), horizon=horizon, alpha=alpha, beta=beta))
+    params = trajectory.Params()
+    params = replace(params, mpc=replace(params.mpc, horizon=horizon, alpha=alpha, beta=beta))
     with cli_errors(), step("computing trajectories"):
         stats = trajectory.run(scene, b / "analysis", plan_file or b / "plan.json", out, params,
                                producer=f"mpc {scene}")

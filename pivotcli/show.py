@@ -79,3 +79,20 @@ def plan(
     with cli_errors():
         plots.show_plan(load_scene(scene), build_dir, png, plan_file)
     info(f"wrote {png}")
+
+
+@app.command("execution")
+def execution(
+    run_dir: Annotated[Path, typer.Argument(help="Folder written by pivot execute.")],
+    png: Annotated[Path | None, typer.Option(help="Storyboard PNG (default <dir>/execution.png).")] = None,
+    gif: Annotated[Path | None, typer.Option(help="Animated GIF (default <dir>/execution.gif).")] = None,
+    scene: Annotated[Path | None, typer.Option(help="Unused; accepted for symmetry with the others.")] = None,
+) -> None:
+    """Fig. 15-18: PyBullet frames of the execution as a storyboard PNG and an animated GIF."""
+    from stages import plots
+
+    png = png or run_dir / "execution.png"
+    gif = gif or png.with_suffix(".gif")
+    with cli_errors():
+        plots.show_execution(run_dir, png, gif)
+    info(f"wrote {png} and {gif}")

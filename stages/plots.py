@@ -311,3 +311,41 @@ def hull_vertex(build_dir: Path, vertex_id: int) -> np.ndarray:
     hull = artifacts.read_table(Path(build_dir) / "analysis" / "hull.parquet", "hull")
     i = np.flatnonzero((hull["kind"] == "vertex") & (hull["v0"] == vertex_id))[0]
     return np.array([hull["x0"][i], hull["y0"][i], hull["z0"][i]])
+
+
+def show_execution(run_dir: str | Path, png: str | Path, gif: str | Path | None = None) -> None:
+    """Fig. 15-18: a storyboard of the frames PyBullet rendered during ``pivot execute`` (PNG) and an
+    animated GIF of them; plus the object's tracking error and pivot slip over time under the frames."""
+    from PIL import Image
+
+    d = Path(run_dir)
+    if not (d / "frames.npz").is_file():
+        raise ArtifactError(f"{d / 'frames.npz'}: missing (run pivot execute with --frames > 0 first)")
+    frames = np.load(d / "frames.npz")["frames"]
+    log = artifacts.read_table(d / "execution.parquet", "execution")
+    metrics = artifacts.read_json(d / "execution.json", "execution_metrics")
+    k = len(frames)
+    cols = min(4, k)
+    show = np.linspace(0, k - 1, min(k, 8)).round().astype(int)
+    rows = int(np.ceil(len(show) / cols))
+    fig = plt.figure(figsize=(3.2 * cols, 2.6 * rows + 2.6))
+    t = log["t"]
+    for i, f in enumerate(show):
+        ax = fig.add_subplot(rows + 1, cols, i + 1)
+        ax.imshow(frames[f])
+        ax.set_title(f"({chr(97 + i)}) t = {t[int(round(f * (len(t) - 1) / max(k - 1, 1)))]:.1f} s", fontsize=9)
+        ax.axis("off")
+    ax = fig.add_subplot(rows + 1, 1, rows + 1)
+    ax.plot(t, 1000 * log["com_error"], lw=1, label="CoM deviation from the plan (mm)")
+    ax.plot(t, 1000 * log["pivot_slip"], lw=1, label="pivot slip (mm)")
+    ax.set_xlabel("t (s)")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(f"success {metrics['success']}: final error {100 * metrics['final_position_error']:.2f} cm, "
+                 f"{metrics['final_yaw_error_deg']:.2f}°; fell {metrics['fell']}, collision {metrics['collision']}",
+                 fontsize=10)
+    fig.tight_layout()
+    _save(fig, png)
+    if gif is not None:
+        images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+        with artifacts.atomic_path(gif) as tmp:
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=250, loop=0)
