@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from pivotcli import analyze, diff, plan, sample, show
+from pivotcli import analyze, diff, execute, plan, sample, show
 from pivotcli.common import configure
 from stages import __version__
 
@@ -45,6 +45,9 @@ app.command(name="sample")(sample.sample)
 app.command(name="graph")(plan.graph)
 app.command(name="plan")(plan.plan)
 app.command(name="mpc")(plan.mpc)
+app.command(name="execute")(execute.execute)
+app.command(name="run")(execute.run)
+app.command(name="report")(execute.report)
 app.command(name="diff")(diff.diff)
 app.add_typer(show.app, name="show")
 
