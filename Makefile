@@ -90,9 +90,8 @@ $(R)/execution.png: $(R)/execution.json | $(INSTALLED)
 execute: $(R)/execution.png ## run the trajectories in PyBullet physics, storyboard + GIF (Fig. 15-18)
 
 # ------------------------------------------------------------------------------------------ jobs
-FIGURES := $(B)/analysis.png $(B)/poses.png $(R)/plan.png $(R)/trajectories.png
-demo: $(INSTALLED) $(FIGURES) ## run the pipeline on the default scene and draw its figures
-	@echo "figures: $(FIGURES)"
+demo: $(INSTALLED) ## the whole chain on the default scene, in physics: summary, figures and a GIF
+	$(PIVOT) run $(SCENE_FILE)
 
 SCENES := default exp1_reach exp2_rotate exp3_obstacle
 # Every scene with the full planner and the three ablations; an ablation with no plan (as the paper

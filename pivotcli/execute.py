@@ -92,8 +92,13 @@ def run(
             _summary(b, v, times, scene.stem)
             raise typer.Exit(code=1)
     if figures:
-        subprocess.run([*make, str(b.resolve() / v / "execution.png"), str(b.resolve() / v / "plan.png"),
-                        str(b.resolve() / v / "trajectories.png")], capture_output=True, text=True)
+        with console.status("drawing the figures", spinner="dots") if not state["quiet"] else _null():
+            pngs = [b.resolve() / f for f in ("analysis.png", "poses.png", f"{v}/plan.png", f"{v}/trajectories.png",
+                                              f"{v}/execution.png")]
+            subprocess.run([*make, *map(str, pngs)], capture_output=True, text=True)
+        if not state["quiet"]:
+            console.print("  figures: " + ", ".join(str(p.relative_to(b.resolve())) for p in pngs if p.exists())
+                          + (", execution.gif" if (b.resolve() / v / "execution.gif").exists() else ""))
     ok = _summary(b, v, times, scene.stem)
     if not ok:
         raise typer.Exit(code=1)
