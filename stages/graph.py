@@ -36,6 +36,7 @@ import numpy as np
 
 from stages import artifacts, mpc, se3, stability
 from stages.artifacts import Field
+from stages.errors import InputError
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.sample import make_scene_collision_fn
@@ -194,14 +195,19 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             status[i] = "unstable"
     live = np.flatnonzero(status == "ok")
     if len(live):
-        trajs = []
+        trajs = {}
         for i in live:  # one reference per candidate (a few dozen samples each)
             ga, gb, li = cand[i]
             Xa, Xb = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]]
             p0 = se3.transform_points(Xa, model.vertices[v[i]])
-            _, Xr, _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
-                                           params.check_durations, p_com_O=model.com)
-            trajs.append(Xr)
+            try:
+                _, trajs[i], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
+                                                     params.check_durations, p_com_O=model.com)
+            except InputError:  # the link is not an exact rotation about that vertex: no pivot edge
+                status[i] = "not_a_pivot"
+        live = np.array([i for i in live if i in trajs], dtype=np.int64)
+        trajs = [trajs[i] for i in live]
+    if len(live):
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])
         ok, why, _ = check_arm_motion(robot, collide, X_traj, p_g[cand[live, 0]], n_g[cand[live, 0]],

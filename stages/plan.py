@@ -256,7 +256,7 @@ def search(ctx: _Context, params: Params) -> dict:
         try:
             path = nx.shortest_path(G, start, target, weight="weight")
         except nx.NetworkXNoPath:
-            if params.no_regrasp and partial is None and ctx.nodes["kind"][target] == "free":
+            if params.no_regrasp and target != start:  # backtracking cut the way: the nearest reachable again
                 target, partial = _nearest_reachable(ctx, G, start)
                 continue
             return {"status": "infeasible", "reason": "no path left after backtracking", "steps": [], "log": log}
@@ -295,19 +295,27 @@ def search(ctx: _Context, params: Params) -> dict:
 
 
 def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, dict]:
-    """The reachable node whose object pose is nearest the goal, and the remaining error to it."""
+    """The reachable node whose object pose is nearest the goal, and the remaining error to it.
+
+    Nearest by ``|Δxy| + r |Δyaw|`` of the CoM (``r`` the object's bounding radius turns the yaw
+    into an arc length) among poses on the goal's placement; other faces only when none is reached.
+    """
     reach = nx.single_source_dijkstra_path_length(G, start, weight="weight")
     goal_X = _goal_pose(ctx)
     com_goal = se3.transform_points(goal_X, ctx.model.com)
+    r = float(np.linalg.norm(ctx.tables["summary"]["extents"]) / 2)
+    goal_face = int(np.argmax(ctx.model.normals @ (goal_X[:3, :3].T @ np.array([0.0, 0.0, -1.0]))))
     best, best_d = start, np.inf
     for n in sorted(reach):  # every reachable node once
-        X = ctx.X_WO[int(ctx.nodes["pose_id"][n])]
+        pose = int(ctx.nodes["pose_id"][n])
+        X = ctx.X_WO[pose]
         d = float(np.linalg.norm(se3.transform_points(X, ctx.model.com)[:2] - com_goal[:2]))
+        d += r * abs(_yaw_between(goal_X, X)) + (0.0 if int(ctx.poses["placement_id"][pose]) == goal_face else 1e3)
         if d < best_d - 1e-12:
             best, best_d = n, d
     X = ctx.X_WO[int(ctx.nodes["pose_id"][best])]
     err = se3.transform_points(X, ctx.model.com) - com_goal
-    return best, {"x": float(err[0]), "y": float(err[1]), "distance": best_d,
+    return best, {"x": float(err[0]), "y": float(err[1]), "distance": float(np.linalg.norm(err[:2])),
                   "yaw": float(_yaw_between(goal_X, X))}
 
 

@@ -9,13 +9,15 @@ lattice. From the start pose, breadth first, every pose is
 - **tumbled** about each support-polygon edge (a hull edge at least ``min_tumble_edge`` long with
   both ends on the table) onto the adjacent hull face.
 
-Only placements that are SP on their own are sampled. A new pose is kept when its supporting
-vertices on the table hold the CoM (SP: the CoM's vertical projection is inside their polygon by
-``sp_margin``), or, with USP allowed, when the table's edge cuts its support but at least two
-supporting vertices lie on the table, so that one end-effector may hold it (USP, §5.1 and Fig. 14;
-the grasp stage decides with the stability test). It is rejected as ``off_table`` (fewer than two
-supporting vertices on the table, or the CoM not above the table), ``unstable`` (USP not allowed)
-or ``obstacle`` (the object mesh hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
+Only placements that are SP on their own are sampled. The object touches the table where its
+support face, clipped to the table top, lies (:func:`table_support`; near the table's edge the edge
+cuts it). A new pose is SP when the CoM's vertical projection lies inside that polygon by
+``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at most
+``max_usp_overhang``, over the table's edge: the object would tip off the table unless one ball holds
+it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). It is rejected as
+``off_table`` (less than ``min_usp_edge`` of contact with the table, or too much overhang),
+``unstable`` (USP not allowed) or ``obstacle`` (the object mesh, at the pose or swept by the pivot or
+tumble that reaches it, hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
 to rounding (e.g. +θ then −θ about one vertex), so that every link is an exact pivot or tumble.
 Every pivot or tumble between two kept poses is a link.
@@ -54,6 +56,10 @@ class Params:
     goal_candidates: int = 12
     goal_connections: int = 3
     goal_max_angle: float = np.radians(30.0)
+    #: USP: the object rests on at least this much table (m, along its contact with the table) and
+    #: its CoM lies at most this far beyond that contact (m), where one ball holds it.
+    min_usp_edge: float = 0.05
+    max_usp_overhang: float = 0.15
 
 
 @dataclass(frozen=True)
@@ -127,19 +133,19 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     index: dict[tuple, list[int]] = {}
 
     def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
-        sup = np.asarray(model.support[g], dtype=np.int64)
-        p = se3.transform_points(X, model.vertices[sup])
-        on = np.all(np.abs(p[:, :2]) <= half, axis=1)
+        contact = table_support(model, X, g, half)
         com = se3.transform_points(X, model.com)
-        if on.sum() < 2 or np.any(np.abs(com[:2]) > half):  # the CoM stays above the table
+        if len(contact) < 2 or _extent(contact) < params.min_usp_edge:
             return "off_table", "USP", -np.inf
-        margin = _margin(p[on, :2], com[:2])
+        margin = _margin(contact, com[:2])
         if margin >= params.sp_margin:
             kind = "SP"
-        elif params.usp:
-            kind = "USP"
-        else:
+        elif not params.usp:
             return "unstable", "USP", margin
+        elif -margin > params.max_usp_overhang:
+            return "off_table", "USP", margin
+        else:
+            kind = "USP"
         if collide(X):
             return "obstacle", kind, margin
         return "ok", kind, margin
@@ -165,11 +171,15 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
         """Add a pose (or find its twin); returns its row and whether it is new."""
         k = key_of(X, g)
         found = find(k)
+        swept_hit = parent >= 0 and obstacles and _swept_hits(model, collide, rows[parent]["X"], X, primitive,
+                                                              vertex, edge)
         if found >= 0:
-            if parent >= 0 and rows[found]["status"] == "ok" and found != parent:
+            if parent >= 0 and rows[found]["status"] == "ok" and found != parent and not swept_hit:
                 links.append((parent, found, primitive, vertex, edge, angle))
             return found, False
         status, kind, margin = classify(X, g)
+        if swept_hit and status == "ok":
+            status = "obstacle"
         i = len(rows)
         rows.append(dict(X=X, g=g, kind=kind, status=status, parent=parent, primitive=primitive, vertex=vertex,
                          edge=edge, angle=angle, margin=margin, key=k))
@@ -211,8 +221,8 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     for i in cand[: params.goal_candidates]:  # a dozen closed-form solves
         conn = connect.connect_poses(rows[i]["X"], X_goal, model.vertices[ids], connect.Params(
             max_angle=params.goal_max_angle))
-        if not conn.ok:
-            continue
+        if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
+            continue  # a pivot this small would merge its pose into its parent's
         prev = i
         for step in range(len(conn.angles)):  # at most three pivots
             last = step == len(conn.angles) - 1
@@ -225,6 +235,44 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
         if joined >= params.goal_connections:
             break
     return goal
+
+
+def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray) -> np.ndarray:
+    """Where the object at ``X`` on placement ``g`` touches the table: the support face's polygon
+    clipped to the table top (the table's edge cuts it when the object overhangs), ``(k, 2)`` m, W.
+
+    The object rests on that polygon; its CoM projection inside it is SP, outside it USP (the object
+    tips over the polygon's edge unless a ball holds it, §5.1, Fig. 14).
+    """
+    sup = np.asarray(model.support[g], dtype=np.int64)
+    p = se3.transform_points(X, model.vertices[sup])[:, :2]
+    poly = _convex_hull_2d(p)
+    for axis in (0, 1):  # Sutherland–Hodgman against the four table sides
+        for sign in (1.0, -1.0):
+            poly = _clip(poly, axis, sign, half[axis])
+            if len(poly) == 0:
+                return poly.reshape(0, 2)
+    return poly
+
+
+def _clip(poly: np.ndarray, axis: int, sign: float, limit: float) -> np.ndarray:
+    """The part of polygon ``poly (k, 2)`` with ``sign * x[axis] <= limit``."""
+    if len(poly) == 0:
+        return poly
+    d = sign * poly[:, axis] - limit  # <= 0 inside
+    out = []
+    for i in range(len(poly)):  # a handful of vertices
+        a, b, da, db = poly[i], poly[(i + 1) % len(poly)], d[i], d[(i + 1) % len(poly)]
+        if da <= 0:
+            out.append(a)
+        if (da < 0 < db) or (db < 0 < da):
+            out.append(a + (b - a) * (da / (da - db)))
+    return np.array(out).reshape(-1, 2)
+
+
+def _extent(p: np.ndarray) -> float:
+    """Largest distance between two of the points ``p (k, 2)``."""
+    return float(np.max(np.linalg.norm(p[:, None] - p[None], axis=2))) if len(p) else 0.0
 
 
 def _successors(model, corners, X, g, half, params):
@@ -247,6 +295,21 @@ def _successors(model, corners, X, g, half, params):
         if done is not None:
             out.append((done[0], done[1], "tumble", -1, (int(a), int(b)), done[2]))
     return out
+
+
+def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarray, primitive: str, vertex: int,
+                edge, fractions=(0.25, 0.5, 0.75)) -> bool:
+    """Does the object hit an obstacle on its way from ``X_from`` to ``X_to`` (a pivot about the vertical
+    through ``vertex`` or a tumble over ``edge``), checked at a few fractions of the rotation?"""
+    R_rel = X_to[:3, :3] @ X_from[:3, :3].T
+    rotvec = se3.quat_from_matrix(R_rel)
+    angle = 2.0 * np.arctan2(np.linalg.norm(rotvec[:3]), rotvec[3])
+    if angle < 1e-9:
+        return False
+    axis = rotvec[:3] / np.linalg.norm(rotvec[:3])
+    point = model.vertices[vertex] if primitive == "pivot" else model.vertices[edge[0]]
+    point = se3.transform_points(X_from, point)
+    return any(collide(se3.transform_about_line(point, axis, s * angle) @ X_from) for s in fractions)
 
 
 def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 16):

@@ -242,10 +242,20 @@ def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r) -> dict
     stable_ids = np.where(res.stable, ids[rows, cols], -1)
     per_row = np.split(stable_ids, np.cumsum(np.bincount(rows, minlength=N))[:-1]) if N else []
     out["pivot_vertices"] = [np.sort(v[v >= 0]) for v in per_row]
-    # USP: the support corners on the table (the edge it rests on) with both balls, then each alone.
+    # USP: the object on the table's edge (its support face clipped to the table top) with both balls,
+    # then with each ball alone.
     us = np.flatnonzero(usp)
     if len(us):
-        V, mask = V[us], mask[us]
+        uniq, first = np.unique(pose_id[us], return_index=True)
+        polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half)
+                 for p, f in zip(uniq, first, strict=True)}
+        kmax = max(len(v) for v in polys.values())
+        V = np.zeros((len(us), kmax, 3))
+        mask = np.zeros((len(us), kmax), bool)
+        for k, i in enumerate(us):  # padded table-contact polygons, one per pose
+            poly = polys[int(pose_id[i])]
+            V[k, :len(poly), :2] = poly
+            mask[k, :len(poly)] = True
         R = X[us, :3, :3]
         both = stability.evaluate_threaded(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=R)
         out["stable"][us] = both.stable

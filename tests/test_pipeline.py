@@ -113,3 +113,27 @@ def test_plan_reaches_the_goal_with_exact_pivots(ctx):
         v = model.vertices[s["vertex"]]
         np.testing.assert_allclose(se3.transform_points(Xa, v), se3.transform_points(Xb, v), atol=1e-9)
     assert plan["counts"]["pivot"] == sum(s["primitive"] == "pivot" for s in steps)
+
+
+@pytest.mark.slow
+def test_plan_runs_in_physics_end_to_end(ctx):
+    """mpc + execute on the small scene's plan: the object reaches the goal through its contacts."""
+    from stages import execute, trajectory
+
+    scene, b, *_ = ctx
+    stats = trajectory.run(scene.path, b / "analysis", b / "plan.json", b / "trajectories.parquet",
+                           trajectory.Params())
+    assert stats["status"] == "ok"
+    tr = artifacts.read_table(b / "trajectories.parquet", "trajectories")
+    # Every pivot row keeps each ball force within its bound (MPC constraint) and the table pushing up.
+    piv = tr["kind"] == "pivot"
+    for side in ("l", "r"):
+        f = np.stack([tr[f"f{side}x"], tr[f"f{side}y"], tr[f"f{side}z"]], 1)[piv]
+        bound = scene.robot.max_eef_force * np.sqrt(1 + scene.object.friction**2)  # normal <= f_max, in the cone
+        assert np.linalg.norm(f, axis=1).max() <= bound + 1e-6
+    assert (tr["f0z"][piv] > 0).all()
+    ex = execute.run(scene.path, b / "analysis", b / "trajectories.parquet", b / "exec", execute.Params())
+    m = ex.metrics
+    assert m["success"], {k: m[k] for k in ("final_position_error", "final_yaw_error_deg", "fell", "collision")}
+    assert m["final_position_error"] <= 0.01 and m["final_yaw_error_deg"] <= 2.0
+    assert not m["fell"] and not m["collision"]

@@ -67,19 +67,33 @@ def test_tumbling_a_box_lands_on_the_adjacent_face():
         assert v[:, 2].max() == pytest.approx(0.2, abs=1e-9) or v[:, 2].max() == pytest.approx(0.3, abs=1e-9)
 
 
-def test_overhang_at_the_table_edge_is_usp_and_without_usp_rejected():
-    model = box_model()
-    # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: only the two vertices at x = 0.15
-    # are on the table, the CoM (x = 0.25) is above the table but outside that edge.
+def test_overhang_at_the_table_edge_is_sp_until_the_com_passes_the_edge_then_usp():
+    model = box_model()  # footprint 0.2 (x) x 0.3 (y)
+    # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: the table edge cuts the support, but the
+    # CoM (x = 0.25) is 5 cm inside the part on the table: SP.
     X, g = upright(model, xy=(0.25, 0.0))
     ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1))
-    assert ps.status[0] == "ok" and ps.support[0] == "USP"
-    assert ps.margin[0] == pytest.approx(-0.1, abs=1e-9)
+    assert ps.status[0] == "ok" and ps.support[0] == "SP" and ps.margin[0] == pytest.approx(0.05, abs=1e-9)
+    # CoM 3 cm beyond the edge (x = 0.33), 7 cm of footprint still on the table: USP.
+    X, g = upright(model, xy=(0.33, 0.0))
+    ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1))
+    assert ps.status[0] == "ok" and ps.support[0] == "USP" and ps.margin[0] == pytest.approx(-0.03, abs=1e-9)
     ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1, usp=False))
     assert ps.status[0] == "unstable"
-    # CoM beyond the table edge: off the table whatever the support.
-    X, g = upright(model, xy=(0.31, 0.0))
+    # Resting on the table's edge line with the CoM 8 cm beyond it: still USP; 20 cm beyond: nothing
+    # of the footprint is on the table any more.
+    X, g = upright(model, xy=(0.38, 0.0))
+    assert poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1)).support[0] == "USP"
+    X, g = upright(model, xy=(0.5, 0.0))
     assert poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1)).status[0] == "off_table"
+
+
+def test_table_support_is_the_footprint_clipped_to_the_table():
+    model = box_model()
+    X, g = upright(model, xy=(0.33, 0.1))
+    poly = poses.table_support(model, X, g, np.array([0.3, 0.3]))
+    np.testing.assert_allclose(np.sort(poly[:, 0]), [0.23, 0.23, 0.3, 0.3], atol=1e-12)
+    np.testing.assert_allclose(np.sort(poly[:, 1]), [-0.05, -0.05, 0.25, 0.25], atol=1e-12)
 
 
 def test_poses_hitting_an_obstacle_are_rejected_and_never_expanded():
