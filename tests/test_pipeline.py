@@ -137,3 +137,28 @@ def test_plan_runs_in_physics_end_to_end(ctx):
     assert m["success"], {k: m[k] for k in ("final_position_error", "final_yaw_error_deg", "fell", "collision")}
     assert m["final_position_error"] <= 0.01 and m["final_yaw_error_deg"] <= 2.0
     assert not m["fell"] and not m["collision"]
+
+
+def test_mpc_stage_is_continuous_within_limits_and_deterministic(ctx, tmp_path):
+    from stages import trajectory
+
+    scene, b, model, tables, robot = ctx
+    out1, out2 = tmp_path / "t1.parquet", tmp_path / "t2.parquet"
+    for out in (out1, out2):
+        assert trajectory.run(scene.path, b / "analysis", b / "plan.json", out, trajectory.Params())["status"] == "ok"
+    assert out1.read_bytes() == out2.read_bytes()  # same plan and parameters: byte-identical
+    tr = artifacts.read_table(out1, "trajectories")
+    dt = float(np.median(np.diff(tr["t"])))
+    for arm in ("left", "right"):
+        q = np.stack(list(tr[f"q_{arm}"]))
+        a = robot.arm(arm)
+        assert ((q >= a.lower - 1e-9) & (q <= a.upper + 1e-9)).all()
+        # No branch flips: joint speeds stay within the arm's velocity limits (plus 10 % for the
+        # finite difference of the sampled IK path).
+        assert (np.abs(np.diff(q, axis=0)) / dt <= 1.1 * a.velocity).all()
+    # The balls follow the object: in contact rows the planned ball centre sits one radius off the surface
+    # at the grasp's contact, i.e. FK of the joints matches the ball column within the IK tolerance.
+    rows = np.flatnonzero(tr["left_contact"])
+    p_fk = robot.eef_position("left", np.stack(list(tr["q_left"]))[rows])
+    p_col = np.stack([tr["lx"], tr["ly"], tr["lz"]], 1)[rows]
+    assert np.linalg.norm(p_fk - p_col, axis=1).max() <= 2e-3
