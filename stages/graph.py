@@ -50,7 +50,7 @@ class Params:
     #: Tilt, rotate and lower durations of the sampled pivot path; with ``check_dt`` they set how
     #: many intermediate configurations are checked.
     check_durations: tuple[float, float, float] = (1.0, 1.5, 1.0)
-    check_dt: float = 0.25
+    check_dt: float = 0.4
     #: A pusher follows the tumble for this angle, then lets the object fall (notes: 35–45°).
     push_angle: float = np.radians(40.0)
     push_samples: int = 6

@@ -53,8 +53,8 @@ class Params:
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble_duration: float = 4.0
     transit: transit.Params = field(default_factory=transit.Params)
-    #: MPC settings; dt = 1/48 s puts every row on the physics clock (5 steps of 1/240 s, stages.execute).
-    mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 48.0))
+    #: MPC settings; dt = 1/24 s puts every row on the physics clock (10 steps of 1/240 s, stages.execute).
+    mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 24.0))
 
 
 @dataclass

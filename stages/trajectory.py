@@ -44,11 +44,13 @@ from stages.scene import load_scene
 class Params:
     """Trajectory generation: MPC settings and primitive timing (s)."""
 
-    #: MPC settings; dt = 1/48 s puts every row on the physics clock (5 steps of 1/240 s, stages.execute).
-    mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 48.0))
+    #: MPC settings; dt = 1/24 s puts every row on the physics clock (10 steps of 1/240 s, stages.execute).
+    mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 24.0))
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble_duration: float = 4.0
     hold: float = 0.5
+    #: IK on every this many rows of a pivot or push (joints interpolated in between).
+    ik_every: int = 3
     #: Fraction of the joint velocity limits used by transits.
     vel_scale: float = 0.5
     acc: float = 2.0
@@ -73,6 +75,17 @@ COLUMNS = ("t", "primitive", "kind", "phase", "X", "X_ref", "X_start", "p_l", "p
            "q_l", "q_r", "c_l", "c_r")
 
 
+def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int) -> np.ndarray:
+    """Joint path ``(T, n)`` through ball targets ``(T, 3)``: IK (seeded step to step, one branch) on
+    every ``every``-th target and the last, joints interpolated linearly in between (the motions are
+    slow: the ball then strays well under a millimetre from its target between IK samples)."""
+    T = len(targets)
+    keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
+    qk = robot.ik_trajectory(arm, targets[keys], q0).q
+    t = np.arange(T)
+    return np.stack([np.interp(t, keys, qk[:, j]) for j in range(qk.shape[1])], axis=1)
+
+
 def _ball_centres(X, p_O, n_O, r):
     """Ball centres ``(T, 3)`` (W) touching at ``p_O`` with outward normal ``n_O`` (O)."""
     return se3.transform_points(X, p_O + r * n_O)
@@ -82,7 +95,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    collide = make_scene_collision_fn(scene, robot, tables["mesh"])
+    collide = None  # built on the first tumble only: pivots and transits need no collision checks here
     con = tables["contacts"]
     p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
@@ -162,8 +175,8 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
                 break
             X = res.X_WO
             targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
-            ql = robot.ik_trajectory("left", targets[:, 0], q["left"]).q
-            qr = robot.ik_trajectory("right", targets[:, 1], q["right"]).q
+            ql = _ik_path(robot, "left", targets[:, 0], q["left"], params.ik_every)
+            qr = _ik_path(robot, "right", targets[:, 1], q["right"], params.ik_every)
             T = len(t)
             rows.add(t=t_now + t, primitive=np.full(T, k), kind=np.full(T, "pivot"), phase=phase, X=X, X_ref=Xr,
                      X_start=np.broadcast_to(X_from, (T, 4, 4)),
@@ -179,6 +192,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             c = int(step["pusher_contact"])
             move_arm(pusher, step["transit"][pusher], X_from, k, c)
             e0, e1 = step["edge"]
+            collide = collide or make_scene_collision_fn(scene, robot, tables["mesh"])
             found, _, q_push = pusher_motion(robot, collide, model, X_from, X_to, e0, e1, p_O, n_O, r,
                                              GraphParams(), arms=(pusher,))
             if found is None:
@@ -192,7 +206,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             push_end = np.flatnonzero(np.array([se3.tilt_of(Xr[i][:3, :3] @ X_from[:3, :3].T)
                                                 for i in range(len(Xr))]) <= GraphParams().push_angle)[-1]
             target = _ball_centres(Xr[: push_end + 1], p_O[c], n_O[c], r)
-            qp = robot.ik_trajectory(pusher, target, q[pusher]).q
+            qp = _ik_path(robot, pusher, target, q[pusher], params.ik_every)
             T = len(t)
             f = np.zeros((T, 3))
             res = mpc.run_tumble_mpc(scene.object.mass, np.asarray(summ["inertia"]), model.com,
