@@ -10,7 +10,8 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   moves, then the right; in USP only the arm the edge names, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
   flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
-  friction and force constraints; ``mpc_infeasible`` is a failure like any other.
+  friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
+  ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
@@ -47,14 +48,21 @@ class Params:
     no_usp: bool = False
     #: Edges removed at most before giving up.
     max_removals: int = 400
-    #: Run the MPC on every pivot of a candidate path.
+    #: Run the MPC on every pivot of a candidate path, and refuse pivots it can only just track: a
+    #: tracking error above ``mpc_max_error`` (rad) or a ball force above ``mpc_max_force`` times the
+    #: bound (in PyBullet such pivots slid their vertex by centimetres).
     check_mpc: bool = True
+    mpc_max_error: float = 5e-3
+    mpc_max_force: float = 0.9
     #: Durations (s) of tilt, rotate, lower of a pivot and of a tumble.
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble_duration: float = 4.0
     transit: transit.Params = field(default_factory=transit.Params)
     #: MPC settings; dt = 1/24 s puts every row on the physics clock (10 steps of 1/240 s, stages.execute).
     mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 24.0))
+    #: The MPC plans with this fraction of the scene's friction coefficients, so that the forces it
+    #: plans leave room for what the compliant arms add in execution (the squeeze).
+    friction_safety: float = 0.8
 
 
 @dataclass
@@ -181,7 +189,12 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                     p0, t, Xr, _mpc_params(ctx, params))
             if res.status != "ok":
                 return False, "mpc_infeasible", step, state
+            f_peak = float(np.max(np.linalg.norm(res.f_eef_W, axis=2)))
+            if np.max(res.tracking_error) > params.mpc_max_error or f_peak > params.mpc_max_force * \
+                    ctx.scene.robot.max_eef_force:
+                return False, "mpc_marginal", step, state  # feasible only at its limits: physics slips
             step["mpc_max_error"] = float(np.max(res.tracking_error))
+            step["mpc_peak_force"] = f_peak
         new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
                      {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb)
         step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
@@ -229,7 +242,8 @@ def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
 def _mpc_params(ctx: _Context, params: Params) -> mpc.Params:
     from dataclasses import replace
 
-    return replace(params.mpc, mu_eef=ctx.scene.object.friction, mu_table=ctx.scene.table.friction,
+    return replace(params.mpc, mu_eef=params.friction_safety * ctx.scene.object.friction,
+                   mu_table=params.friction_safety * ctx.scene.table.friction,
                    f_max=ctx.scene.robot.max_eef_force)
 
 

@@ -46,6 +46,9 @@ class Params:
 
     #: MPC settings; dt = 1/24 s puts every row on the physics clock (10 steps of 1/240 s, stages.execute).
     mpc: mpc.Params = field(default_factory=lambda: mpc.Params(dt=1.0 / 24.0))
+    #: The MPC plans with this fraction of the scene's friction coefficients, so that the forces it
+    #: plans leave room for what the compliant arms add in execution (the squeeze).
+    friction_safety: float = 0.8
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble_duration: float = 4.0
     hold: float = 0.5
@@ -101,7 +104,8 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
     r = scene.robot.ball_radius
     summ = tables["summary"]
-    mp = replace(params.mpc, mu_eef=scene.object.friction, mu_table=scene.table.friction,
+    mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
+                   mu_table=params.friction_safety * scene.table.friction,
                  f_max=scene.robot.max_eef_force)
     dt = mp.dt
     rows = _Rows()
