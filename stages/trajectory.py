@@ -53,7 +53,7 @@ class Params:
     tumble_duration: float = 4.0
     hold: float = 0.5
     #: IK on every this many rows of a pivot or push (joints interpolated in between).
-    ik_every: int = 3
+    ik_every: int = 4
     #: Fraction of the joint velocity limits used by transits.
     vel_scale: float = 0.5
     acc: float = 2.0
