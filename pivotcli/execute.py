@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import time
@@ -78,7 +79,7 @@ def run(
         path = b.resolve() / target.format(v=v)
         t0 = time.perf_counter()
         with console.status(f"[bold]{name}[/bold] ({path.relative_to(b.resolve())})", spinner="dots") \
-                if not state["quiet"] else _null():
+                if not state["quiet"] else contextlib.nullcontext():
             proc = subprocess.run([*make, str(path)], capture_output=True, text=True)
         times[name] = time.perf_counter() - t0
         if proc.returncode != 0:
@@ -92,7 +93,7 @@ def run(
             _summary(b, v, times, scene.stem)
             raise typer.Exit(code=1)
     if figures:
-        with console.status("drawing the figures", spinner="dots") if not state["quiet"] else _null():
+        with console.status("drawing the figures", spinner="dots") if not state["quiet"] else contextlib.nullcontext():
             pngs = [b.resolve() / f for f in ("analysis.png", "poses.png", f"{v}/plan.png", f"{v}/trajectories.png",
                                               f"{v}/execution.png")]
             subprocess.run([*make, *map(str, pngs)], capture_output=True, text=True)
@@ -102,14 +103,6 @@ def run(
     ok = _summary(b, v, times, scene.stem)
     if not ok:
         raise typer.Exit(code=1)
-
-
-class _null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *a):
-        return False
 
 
 def _summary(b: Path, v: str, times: dict, name: str) -> bool:

@@ -24,7 +24,7 @@ reports the remaining error, as Table 2 does; ``no_tumble`` and ``no_usp`` drop 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import networkx as nx
@@ -32,10 +32,10 @@ import numpy as np
 
 from stages import artifacts, mpc, se3, transit
 from stages.graph import Params as GraphParams
-from stages.graph import check_arm_motion
+from stages.graph import check_arm_motion, pusher_motion
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
-from stages.sample import make_scene_collision_fn
+from stages.sample import make_scene_collision_fn, placement_pose
 from stages.scene import Scene, load_scene
 
 
@@ -139,7 +139,7 @@ def _transit(ctx: _Context, params: Params, state: _State, arm: str, q_goal, n_g
                                 params.transit, n_start=state.normal[arm], n_goal=n_goal)
 
 
-def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict, path_edges: list):
+def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict):
     """Check one edge of the path from ``state``; returns ``(ok, reason, step dict, new state)``."""
     nodes = ctx.nodes
     prim = data["primitive"]
@@ -232,16 +232,12 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
 
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
     """The pusher's contact and joint path for a tumble (see ``stages.graph._find_pusher``)."""
-    from stages.graph import pusher_motion
-
     found, c, q = pusher_motion(ctx.robot, ctx.collide, ctx.model, Xa, Xb, e0, e1, ctx.p_O, ctx.n_O,
                                 ctx.scene.robot.ball_radius, GraphParams(), arms=(arm,))
     return None if found is None else (c, q)
 
 
 def _mpc_params(ctx: _Context, params: Params) -> mpc.Params:
-    from dataclasses import replace
-
     return replace(params.mpc, mu_eef=params.friction_safety * ctx.scene.object.friction,
                    mu_table=params.friction_safety * ctx.scene.table.friction,
                    f_max=ctx.scene.robot.max_eef_force)
@@ -280,7 +276,7 @@ def search(ctx: _Context, params: Params) -> dict:
         failed = None
         for u, v in zip(path[:-1], path[1:], strict=True):  # the path's few dozen edges
             data = G.edges[u, v]
-            ok, why, step, state = _check_step(ctx, params, state, u, v, data, steps)
+            ok, why, step, state = _check_step(ctx, params, state, u, v, data)
             if not ok:
                 failed = (u, v, data, why)
                 break
@@ -334,8 +330,6 @@ def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, d
 
 
 def _goal_pose(ctx: _Context) -> np.ndarray:
-    from stages.sample import placement_pose
-
     X, _ = placement_pose(ctx.scene.goal, ctx.model, "goal")
     return X
 

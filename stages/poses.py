@@ -36,6 +36,7 @@ import fcl
 import numpy as np
 
 from stages import connect, se3
+from stages.analyze import _polygon_margins
 
 PRIMITIVES = ("start", "goal", "pivot", "tumble")
 
@@ -362,8 +363,6 @@ def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 
 
 def _margin(p: np.ndarray, q: np.ndarray) -> float:
     """Signed distance of ``q (2,)`` inside the convex hull of ``p (k, 2)`` (< 0 outside)."""
-    from stages.analyze import _polygon_margins
-
     c = p.mean(axis=0)
     order = np.argsort(np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0]))
     hull = _convex_hull_2d(p[order])

@@ -170,7 +170,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     # Stability.
     live = np.flatnonzero(reason == "")
     margins = _stability(scene, model, tables, ps, pose_idx[live], X[live], p_l[live], p_r[live], n_l[live],
-                         n_r[live])
+                         n_r[live], params.corner_cluster)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -200,7 +200,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     return grasps, rejects, timings
 
 
-def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r) -> dict:
+def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r, corner_cluster: float) -> dict:
     """Stability verdicts and margins of grasp candidates (see the module docstring, step 5)."""
     N = len(X)
     mass = scene.object.mass
@@ -210,7 +210,7 @@ def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r) -> dict
                            f_max=scene.robot.max_eef_force)
     eef_p = np.stack([p_l, p_r], axis=1)
     eef_n = -np.stack([n_l, n_r], axis=1)  # inward normals
-    corners = poses.pivot_corners(model, 0.03)
+    corners = poses.pivot_corners(model, corner_cluster)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.full(N, np.nan), "hold_right": np.full(N, np.nan), "pivot_vertices": [None] * N}
     usp = ps.support[pose_id] == "USP"
