@@ -195,18 +195,18 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             status[i] = "unstable"
     live = np.flatnonzero(status == "ok")
     if len(live):
-        trajs = {}
-        for i in live:  # one reference per candidate (a few dozen samples each)
-            ga, gb, li = cand[i]
+        by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
+        for li in np.unique(cand[live, 2]):
             Xa, Xb = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]]
-            p0 = se3.transform_points(Xa, model.vertices[v[i]])
+            p0 = se3.transform_points(Xa, model.vertices[links["vertex"][li]])
             try:
-                _, trajs[i], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
-                                                     params.check_durations, p_com_O=model.com)
+                _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
+                                                        params.check_durations, p_com_O=model.com)
             except InputError:  # the link is not an exact rotation about that vertex: no pivot edge
-                status[i] = "not_a_pivot"
-        live = np.array([i for i in live if i in trajs], dtype=np.int64)
-        trajs = [trajs[i] for i in live]
+                pass
+        status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
+        live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
+        trajs = [by_link[cand[i, 2]] for i in live]
     if len(live):
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])

@@ -22,6 +22,7 @@ import math
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -237,6 +238,13 @@ class Arm:
     @property
     def dof(self) -> int:
         return len(self.joint_names)
+
+    @cached_property
+    def frame_origins(self) -> tuple[tuple[np.ndarray | None, np.ndarray | None], ...]:
+        """Per frame, its origin's translation and rotation, each None when zero or the identity (the
+        forward kinematics skips them)."""
+        return tuple((t if np.any(t != 0.0) else None, None if np.array_equal(A, np.eye(3)) else A)
+                     for t, A in zip(self.origin_t, self.origin_R, strict=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -512,12 +520,10 @@ def _fk_frames(a: Arm, qT: np.ndarray, upto: int | None = None, keep_rot: bool =
     cols = [np.broadcast_to(a.X_WR[:3, j, None], (3, m)) for j in range(3)]
     p = np.broadcast_to(a.X_WR[:3, 3, None], (3, m))
     out = []
-    for k in range(len(a.link_names) if upto is None else upto):
-        t = a.origin_t[k]
-        if np.any(t != 0.0):
+    for k, (t, A) in enumerate(a.frame_origins[:upto]):
+        if t is not None:
             p = p + _combine(cols, t)
-        A = a.origin_R[k]
-        if not np.array_equal(A, np.eye(3)):
+        if A is not None:
             cols = [_combine(cols, A[:, j]) for j in range(3)]
         w = None
         j = a.joint[k]
