@@ -13,7 +13,8 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   pivot about vertex v (§5.2.1). Checked along the tilt → rotate → lower motion sampled from
   ``stages.mpc.pivot_reference``: batched IK along the path seeded from the first node (no branch
   flips), the arms free of collision at every sample, and the object in equilibrium on v with the two
-  balls at the largest tilt (the stability LP). Undirected.
+  balls at the largest tilt (the stability LP, with the friction and ball force the plan's MPC may
+  use, ``friction_safety`` and ``force_safety``). Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between two grasps that share one ball's contact, when that ball alone holds the object on its
   table edge (``margin_hold_*`` ≥ 0, §5.2.2): the other ball moves. Undirected. The transit motions
@@ -60,6 +61,11 @@ class Params:
     push_cone: float = np.radians(50.0)
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
+    #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
+    #: (``stages.plan.Params``: 0.8 of the friction, 0.9 of the force bound), so that the search
+    #: does not find pivots its MPC check then refuses.
+    friction_safety: float = 0.8
+    force_safety: float = 0.9
 
 
 @dataclass(frozen=True)
@@ -79,7 +85,8 @@ def _grasp_geometry(tables, grasps, r):
     return p[c], n[c]
 
 
-def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True)):
+def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),
+                     batch: bool = False):
     """IK and collisions along object trajectories with both balls on their contacts.
 
     Parameters
@@ -88,6 +95,7 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
     p_O, n_O : (E, 2, 3) contact points and outward normals (O) of the left and right ball.
     q0 : (E, 2, n) joint seeds at the first sample.
     active : which balls follow the object; an inactive arm stays at its seed.
+    batch : solve the IK of all samples at once first (``Robot.ik_trajectory``; for few long motions).
 
     Returns ``ok (E,)``, ``reason (E,)`` (first failure), ``q (T, E, 2, n)``.
     """
@@ -101,7 +109,8 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
             continue
         ball_O = p_O[:, k] + ball_radius * n_O[:, k]
         targets = np.einsum("etij,ej->tei", X_traj[..., :3, :3], ball_O) + np.swapaxes(X_traj[..., :3, 3], 0, 1)
-        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step)
+        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step,
+                                  batch=batch)
         q[:, :, k] = res.q
         bad = ~res.ok
         first = np.argmax(bad, axis=0)
@@ -223,8 +232,10 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
             res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
                                      pts, nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                     stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
-                                                      f_max=scene.robot.max_eef_force), compute_margin=False)
+                                     stability.Params(mu_eef=params.friction_safety * scene.object.friction,
+                                                      mu_table=params.friction_safety * scene.table.friction,
+                                                      f_max=params.force_safety * scene.robot.max_eef_force),
+                                     compute_margin=False)
             status[live2[~res.stable]] = "unstable"
     for i, (ga, gb, _) in enumerate(cand):
         edges.append((ga, gb, "pivot", w.pivot, str(status[i]), int(v[i]), -1, -1, "both"))

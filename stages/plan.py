@@ -15,7 +15,10 @@ robot's actual joint configuration along (it starts at the home posture, all joi
 - **tumble**: the pusher's transit to its contact, and the push along the rotation.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
-are logged, and the search runs again, until a path passes or none is left. Ablations (the paper's
+are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept
+by edge and exact robot state, so the next path re-walks the prefix it shares with the last one
+without re-planning it (the result is the same, bit for bit). The pivot IK first tries all samples in
+one vectorized solve (``Robot.ik_trajectory(batch=True)``) and falls back to step by step. Ablations (the paper's
 comparisons): ``no_regrasp`` keeps only the first grasp and the final release (the graph MPC gait of
 [3]); when the goal is then out of reach the plan goes to the reachable pose nearest the goal and
 reports the remaining error, as Table 2 does; ``no_tumble`` and ``no_usp`` drop those edges or nodes.
@@ -72,6 +75,14 @@ class _State:
     q: dict  # arm -> (n,) joints
     normal: dict  # arm -> (3,) outward contact normal (W) when the ball touches, else None
     X_WO: np.ndarray
+
+    def key(self) -> bytes:
+        """The state's exact bytes: a step checked from an equal state gives an equal result."""
+        parts = [self.X_WO.tobytes()]
+        for arm in ("left", "right"):
+            n = self.normal[arm]
+            parts += [np.asarray(self.q[arm]).tobytes(), b"-" if n is None else np.asarray(n).tobytes()]
+        return b"|".join(parts)
 
 
 class _Context:
@@ -180,7 +191,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         every = max(1, int(round(0.1 / params.mpc.dt)))  # IK and collisions every 0.1 s of the motion
         sub = np.unique(np.r_[np.arange(0, len(Xr), every), len(Xr) - 1])
         ok, why, q = check_arm_motion(ctx.robot, ctx.collide, Xr[sub][None], p_c[None], n_c[None], q0,
-                                      ctx.scene.robot.ball_radius, GraphParams())
+                                      ctx.scene.robot.ball_radius, GraphParams(), batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
         if params.check_mpc:
@@ -262,6 +273,7 @@ def search(ctx: _Context, params: Params) -> dict:
         target, partial = _nearest_reachable(ctx, G, start)
     home = np.zeros(ctx.robot.arm("left").dof)
     removals = 0
+    checked: dict = {}  # (u, v, state) -> the check's outcome: a new path re-walks its prefix for free
     while True:
         try:
             path = nx.shortest_path(G, start, target, weight="weight")
@@ -276,7 +288,10 @@ def search(ctx: _Context, params: Params) -> dict:
         failed = None
         for u, v in zip(path[:-1], path[1:], strict=True):  # the path's few dozen edges
             data = G.edges[u, v]
-            ok, why, step, state = _check_step(ctx, params, state, u, v, data)
+            key = (u, v, state.key())
+            if key not in checked:
+                checked[key] = _check_step(ctx, params, state, u, v, data)
+            ok, why, step, state = checked[key]
             if not ok:
                 failed = (u, v, data, why)
                 break

@@ -414,13 +414,17 @@ class Robot:
         return IKResult(q=q, ok=ok, reason=np.asarray(IK_REASONS)[code], err=err)
 
     def ik_trajectory(self, arm: str, p_W: np.ndarray, q0: np.ndarray, tol: float = 1e-3,
-                      max_joint_step: float = 0.5) -> IKResult:
+                      max_joint_step: float = 0.5, batch: bool = False) -> IKResult:
         """Continuous joint paths through a sequence of targets.
 
         ``p_W (T, 3)`` with ``q0 (n,)``, or ``p_W (T, N, 3)`` with ``q0 (N, n)`` for N paths at once.
         Each step is seeded with the previous step's solution and never restarted, so the path stays
         on one IK branch; a step whose largest joint change exceeds ``max_joint_step`` (rad) is marked
         ``"joint_jump"``. Returns ``IKResult`` with ``q (T, [N,] n)`` and the rest ``(T, [N])``.
+
+        ``batch``: first solve every step at once, each seeded with ``q0`` (one vectorized solve instead
+        of T small ones, for few paths of many steps); kept when every step converges and no step
+        jumps, else the step-by-step solve runs.
         """
         a = self.arm(arm)
         p_W = np.asarray(p_W, dtype=float)
@@ -432,6 +436,14 @@ class Robot:
             raise ValueError(f"p_W must be (T, 3) or (T, N, 3), got {p_W.shape}")
         T, N, n = p_W.shape[0], p_W.shape[1], a.dof
         q_prev = np.clip(_check_q(a, q0, N), a.lower, a.upper)
+        if batch and T:
+            q_b, err_b = _dls(a, _check_points(p_W.reshape(T * N, 3)), np.tile(q_prev, (T, 1)), tol, self.ik_params)
+            q_b, err_b = q_b.reshape(T, N, n), err_b.reshape(T, N)
+            steps = np.abs(np.diff(np.concatenate([q_prev[None], q_b]), axis=0)).max(axis=2)
+            if np.all(err_b <= tol) and np.all(steps <= max_joint_step):
+                res = IKResult(q=q_b, ok=np.ones((T, N), bool), reason=np.full((T, N), IK_REASONS[0]), err=err_b)
+                return IKResult(q=res.q[:, 0], ok=res.ok[:, 0], reason=res.reason[:, 0], err=res.err[:, 0]) \
+                    if single else res
         q = np.zeros((T, N, n))
         err = np.zeros((T, N))
         code = np.zeros((T, N), dtype=int)
