@@ -106,6 +106,8 @@ class TumbleParams:
     #: Catching contacts: outward normal within this angle of the landing direction; candidates tried.
     catch_cone: float = np.radians(30.0)
     catch_candidates: int = 8
+    #: Where the catcher's ball has rolled to at the end of the catch must lie this far inside its face (m).
+    roll_margin: float = 0.005
     #: The object rests this long after landing before the arms leave (s).
     settle: float = 1.0
     #: A placing catcher backs off this far along its contact normal (m), in ``retreat_time`` s.
@@ -162,6 +164,77 @@ def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int, c
     if not check:
         return q
     return q, ("ok" if res.ok.all() else str(res.reason[np.argmin(res.ok)]))
+
+
+def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, q0: np.ndarray,
+              every: int, iters: int = 12, tol: float = 1e-3) -> tuple[np.ndarray, str]:
+    """Joint path ``(T, n)`` that puts the ball on ``targets (T, 3)`` (W) *and turns it with the object*.
+
+    A ball on a turning object rolls unless it turns with it (notes: "the ball turns with the
+    object"; ``stages.execute`` shifts its target by the rolling, :func:`rolling_shift`): over a
+    90° tumble a ball that keeps its orientation rolls 3 cm along the face, off a contact near the
+    edge. Here the ball's rotation about the object's turning axis (its part tangent to the contact,
+    whose outward normal is ``n_O``, O) follows the object's, ``R_ball(t) = R_WO(t) R_WO(0)^T R_ball(0)``
+    about that axis; the rest (spin about the normal, rolling along the axis) is left to the posture.
+    Damped least squares with task priority: the position, then that rotation error in its null space;
+    geometric Jacobian, joint limits by clamping, on every ``every``-th row and the last, seeded from
+    the previous (one branch), joints interpolated between.
+    Returns the path and "ok", or the first failure ("ik_unreachable": a position error above ``tol``
+    m; "joint_jump": a step above 0.5 rad).
+    """
+    a = robot.arm(arm)
+    T, n = len(targets), a.dof
+    keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
+    R_rel = X_WO[:, :3, :3] @ X_WO[0, :3, :3].T
+    q = np.clip(np.asarray(q0, dtype=float), a.lower, a.upper)
+    R_b0 = robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
+    lam2 = 1e-6
+    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    out, why = np.zeros((len(keys), n)), "ok"
+    axis = np.array([1.0, 0.0, 0.0])
+    for m, i in enumerate(keys):  # a few dozen key rows
+        q_prev = q.copy()
+        # The rotation about the object's turning axis rolls the ball across its face; the other
+        # tangential part (along the axis) is left free, which keeps the arm's postures feasible.
+        n_W = se3.rotate_vectors(X_WO[i], n_O)
+        d = Rotation.from_matrix(R_rel[min(i + 1, T - 1)] @ R_rel[max(i - 1, 0)].T).as_rotvec()
+        if np.linalg.norm(d) > 1e-9:
+            axis = d / np.linalg.norm(d)
+        S = (axis - (axis @ n_W) * n_W)[None]
+        S /= max(np.linalg.norm(S), 1e-9)
+        R_t = R_rel[i] @ R_b0
+        free = np.ones(n)
+        for _ in range(iters):
+            F = robot.fk(arm, q[None])[0]
+            p, R = F[a.eef_index, :3, 3], F[a.eef_index, :3, :3]
+            w = np.einsum("kij,kj->ki", F[moving, :3, :3], a.axis[moving])  # world joint axes
+            Jw = np.zeros((3, n))
+            Jw[:, a.joint[moving]] = w.T
+            Jp = np.zeros((3, n))
+            Jp[:, a.joint[moving]] = np.cross(w, p - F[moving, :3, 3]).T
+            Jp, Jr = Jp * free, (S @ Jw) * free  # a joint the last step pushed into a limit sits out
+            e_p = targets[i] - p
+            e_r = S @ Rotation.from_matrix(R_t @ R.T).as_rotvec()
+            # Position first; the rotation in its null space (task priority).
+            Jp_pinv = Jp.T @ np.linalg.inv(Jp @ Jp.T + lam2 * np.eye(3))
+            dq1 = Jp_pinv @ e_p
+            N = np.eye(n) - Jp_pinv @ Jp
+            JrN = Jr @ N
+            dq = dq1 + N @ (JrN.T @ np.linalg.solve(JrN @ JrN.T + lam2 * np.eye(len(S)), e_r - Jr @ dq1))
+            dq *= min(1.0, 0.2 / max(np.abs(dq).max(), 1e-12))
+            q_new = q + dq
+            free = ((q_new > a.lower) | (dq > 0)) & ((q_new < a.upper) | (dq < 0))
+            q = np.clip(q_new, a.lower, a.upper)
+            if np.linalg.norm(e_p) < 1e-5 and np.abs(dq).max() < 1e-3:
+                break
+        err = np.linalg.norm(targets[i] - robot.eef_position(arm, q[None])[0])
+        if why == "ok" and err > tol:
+            why = "ik_unreachable"
+        elif why == "ok" and m > 0 and np.abs(q - q_prev).max() > 0.5:
+            why = "joint_jump"
+        out[m] = q
+    t = np.arange(T)
+    return np.stack([np.interp(t, keys, out[:, j]) for j in range(n)], axis=1), why
 
 
 def _ball_centres(X, p_O, n_O, r):
@@ -361,6 +434,40 @@ class _Env:
         return self._collide
 
 
+def rolling_shift(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, r: float) -> np.ndarray:
+    """Where a ball that keeps the orientation of its planned joints rolls to on the object, ``(T, 3)`` (m, O).
+
+    Without slip, its centre moves relative to the object by ``(omega_o - omega_ball) x r n_in`` (the
+    controller of ``stages.execute`` shifts its target the same way), accumulated over the rows of
+    ``q (T, n)`` and ``X_WO (T, 4, 4)`` from the first; ``n_O`` is the contact's outward normal (O).
+    """
+    a = robot.arm(arm)
+    R_b = robot.fk(arm, q)[:, a.eef_index, :3, :3]
+    R_o = X_WO[:, :3, :3]
+    d_o = Rotation.from_matrix(R_o[1:] @ np.swapaxes(R_o[:-1], 1, 2)).as_rotvec()
+    d_b = Rotation.from_matrix(R_b[1:] @ np.swapaxes(R_b[:-1], 1, 2)).as_rotvec()
+    n_in = -se3.rotate_vectors(X_WO[:-1], n_O)
+    step_W = np.cross(d_o - d_b, r * n_in)
+    step_O = np.einsum("tji,tj->ti", R_o[:-1], step_W)
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(step_O, axis=0)])
+
+
+def _face_margin(model, p_O: np.ndarray, n_O: np.ndarray, x_O: np.ndarray) -> float:
+    """How far (m) the point ``x_O`` lies inside the flat face through contact ``p_O`` with outward
+    normal ``n_O``, measured in the rectangle its mesh vertices span in the face's plane along the
+    face's principal directions (exact for a rectangular face, an over-estimate for others)."""
+    V = model.mesh_vertices[np.abs((model.mesh_vertices - p_O) @ n_O) < 1e-4]
+    if len(V) < 3:
+        return -np.inf
+    Q = V - V.mean(axis=0)
+    Q -= np.outer(Q @ n_O, n_O)
+    _, _, Wt = np.linalg.svd(Q, full_matrices=False)
+    e = Wt[:2]  # in-plane axes
+    lo, hi = (V @ e.T).min(axis=0), (V @ e.T).max(axis=0)
+    x = x_O @ e.T
+    return float(np.min(np.r_[x - lo, hi - x]))
+
+
 def _contact_at(env: _Env, arm: str, q: np.ndarray, X: np.ndarray, where: str) -> int:
     """The contact whose ball centre the joints ``q`` put the ball on, with the object at ``X``."""
     b_O = se3.transform_points(se3.invert(X), env.robot.eef_position(arm, q[None])[0])
@@ -394,6 +501,77 @@ def _collision_free(env: _Env, q_l, q_r, X, touching, every: int) -> tuple[bool,
     if ok.all():
         return True, "ok"
     return False, str(why[np.argmin(ok)])
+
+
+def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c: float, X_ref, X_to, q_p, q_end,
+                    follow: bool, P: TumbleParams):
+    """The catcher's joints on contact ``c`` along ``X_ref`` and on its way out (slide or back off),
+    checked for IK, rolling and collisions (module docstring); ``(q_c, X_out, tgt_out, q_out)`` or the
+    reason it fails."""
+    robot, model, r = env.robot, env.model, env.r
+    T = len(X_ref)
+    tgt_c = _ball_centres(X_ref, env.p_O[c], env.n_O[c], r)
+    if mode == "hold":  # backwards from the plan's final configuration
+        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1)
+        q_c = q_c[::-1]
+    else:
+        first = robot.ik(catcher, tgt_c[:1], rng=np.random.default_rng(0))
+        if not first.ok[0]:
+            return f"{first.reason[0]} at the start"
+        if follow:
+            q_c, why = ik_follow(robot, catcher, tgt_c, X_ref, env.n_O[c], first.q[0], 1)
+        else:
+            q_c, why = _ik_path(robot, catcher, tgt_c, first.q[0], env.params.ik_every, check=True)
+    if why != "ok":
+        return why
+    # Where the ball touches at the end of the catch, having rolled, must still be on the face.
+    shift = rolling_shift(robot, catcher, q_c, X_ref, env.n_O[c], r)[-1]
+    inside = _face_margin(model, env.p_O[c], env.n_O[c], env.p_O[c] + shift)
+    if inside < P.roll_margin:
+        return f"the ball rolls to {1000 * inside:.0f} mm from the face's edge"
+    # The way out: slide past the far edge of the face (from where the ball has rolled to), or back off
+    # along the contact normal.
+    s = np.zeros(0)
+    X_out, tgt_out, q_out = np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros((0, q_c.shape[1]))
+    dt = env.params.mpc.dt
+    if mode == "slide":
+        X_c = X_ref[-1]
+        seg = roll.segment_of(th_c)
+        p_ax = se3.transform_points(se3.invert(X_c), roll.p_axis[seg])
+        a_ax = X_c[:3, :3].T @ roll.a_axis[seg]
+        u = env.p_O[c] - p_ax
+        u -= (u @ a_ax) * a_ax + (u @ env.n_O[c]) * env.n_O[c]
+        u /= np.linalg.norm(u)
+        reach = float(np.max((model.vertices - env.p_O[c]) @ u)) + r + P.slide_clearance + max(0.0, -shift @ u)
+        n_s = max(2, int(np.ceil(P.slide_time / dt)))
+        s = reach * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
+        X_out = np.broadcast_to(X_c, (n_s, 4, 4))
+        tgt_out = se3.transform_points(X_c, env.p_O[c] + r * env.n_O[c] + s[:, None] * u)
+    elif mode == "place":
+        n_s = max(2, int(np.ceil(P.retreat_time / dt)))
+        s = P.retreat * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
+        X_out = np.broadcast_to(X_to, (n_s, 4, 4))
+        tgt_out = se3.transform_points(X_to, env.p_O[c] + (r + s[:, None]) * env.n_O[c])
+    if len(tgt_out):
+        res = robot.ik_trajectory(catcher, tgt_out, q_c[-1])
+        if not res.ok.all():
+            return f"{res.reason[np.argmin(res.ok)]} on the way out"
+        q_out = res.q
+    # Collisions along the whole motion. The pusher's ball is exempt from the object throughout (the
+    # object turns away from it); the catcher's while it touches: until it has slid out (the last slide
+    # row is clear) or backed off half way, and for good when it holds.
+    X_all = np.concatenate([X_ref, X_out, X_to[None]])
+    qc_all = np.concatenate([q_c, q_out, (q_out if len(q_out) else q_c)[-1:]])
+    qp_all = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(X_out) + 1, q_p.shape[1]))])
+    touch_c = np.r_[np.ones(T, bool), (s < s[-1]) if mode == "slide" else (s < 0.5 * s[-1]), mode == "hold"]
+    touching = np.stack([np.ones(len(X_all), bool), touch_c], axis=1)
+    if catcher == "left":
+        touching = touching[:, ::-1]
+    q_l, q_r = (qc_all, qp_all) if catcher == "left" else (qp_all, qc_all)
+    ok, why = _collision_free(env, q_l, q_r, X_all, touching, P.check_every)
+    if not ok:
+        return why
+    return q_c, X_out, tgt_out, q_out
 
 
 def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
@@ -435,10 +613,10 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         d = np.diff(ks) / max(b - a, 1e-12) * duration
         return list(ks[1:]), list(np.maximum(d, 0.25))
 
-    why = "no candidate"
+    why, pusher_paths, found = "no candidate", {}, None
+    half = np.asarray(env.scene.table.size) / 2
     for c in candidates:  # a handful, best first
         b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
-        half = np.asarray(env.scene.table.size) / 2
         if usp:
             mode, th_c = "hold", roll.total
         elif np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
@@ -453,75 +631,33 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         k1, d1 = pieces(0.0, th_r, P.push_time)
         k2, d2 = pieces(th_r, th_c, P.catch_time)
         t_prof, theta = mpc.knot_profile([0.0, 0.0, *k1, th_r, *k2], [P.grip_time, *d1, P.release_dwell, *d2], dt)
-        T = len(theta)
-        t_rel = P.grip_time + sum(d1) + P.release_dwell / 2
-        on_p = t_prof < t_rel - 1e-9
+        on_p = t_prof < P.grip_time + sum(d1) + P.release_dwell / 2 - 1e-9
         X_ref = roll.poses(theta)
-        tgt_c = _ball_centres(X_ref, env.p_O[c], env.n_O[c], r)
-        tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
         n_rel = int(np.count_nonzero(on_p))
-        q_p, why_p = _ik_path(robot, pusher, tgt_p[:n_rel], q_push[0], env.params.ik_every, check=True)
+        if n_rel not in pusher_paths:  # the same for every catcher
+            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], r)
+            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0], 1)
+        q_p, why_p = pusher_paths[n_rel]
         if why_p != "ok":
             raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
-        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (T - n_rel, tl.n))])
-        if mode == "hold":  # solved backwards from the plan's final configuration
-            q_c, why_c = _ik_path(robot, catcher, tgt_c[::-1], q_after[catcher], env.params.ik_every, check=True)
-            q_c = q_c[::-1]
-        else:
-            first = robot.ik(catcher, tgt_c[:1], rng=np.random.default_rng(0))
-            if not first.ok[0]:
-                why = f"contact {c}: {first.reason[0]} at the start"
+        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, tl.n))])
+        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
+        # turning with the object (no rolling) when that rolls it off its face or fails; into USP only
+        # the latter, solved backwards from the plan's final configuration.
+        for follow in ((True,) if mode == "hold" else (False, True)):
+            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_after[catcher], follow, P)
+            if isinstance(got, str):
+                why = f"contact {c}: {got}"
                 continue
-            q_c, why_c = _ik_path(robot, catcher, tgt_c, first.q[0], env.params.ik_every, check=True)
-        if why_c != "ok":
-            why = f"contact {c}: {why_c}"
-            continue
-        # The catcher's way out: slide past the far edge of its face, or back off along its normal.
-        X_out = np.zeros((0, 4, 4))
-        tgt_out = np.zeros((0, 3))
-        s = np.zeros(0)
-        if mode == "slide":
-            X_c = X_ref[-1]
-            p_ax = se3.transform_points(se3.invert(X_c), roll.p_axis[roll.segment_of(th_c)])
-            a_ax = X_c[:3, :3].T @ roll.a_axis[roll.segment_of(th_c)]
-            u = env.p_O[c] - p_ax
-            u -= (u @ a_ax) * a_ax + (u @ env.n_O[c]) * env.n_O[c]
-            u /= np.linalg.norm(u)
-            reach = float(np.max((model.vertices - env.p_O[c]) @ u)) + r + P.slide_clearance
-            n_s = max(2, int(np.ceil(P.slide_time / dt)))
-            s = reach * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
-            X_out = np.broadcast_to(X_c, (n_s, 4, 4))
-            tgt_out = se3.transform_points(X_c, env.p_O[c] + r * env.n_O[c] + s[:, None] * u)
-        elif mode == "place":
-            n_s = max(2, int(np.ceil(P.retreat_time / dt)))
-            s = P.retreat * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
-            X_out = np.broadcast_to(X_to, (n_s, 4, 4))
-            tgt_out = se3.transform_points(X_to, env.p_O[c] + (r + s[:, None]) * env.n_O[c])
-        q_out = np.zeros((0, tl.n))
-        if len(tgt_out):
-            res = robot.ik_trajectory(catcher, tgt_out, q_c[-1])
-            if not res.ok.all():
-                why = f"contact {c}: {res.reason[np.argmin(res.ok)]} on the way out"
-                continue
-            q_out = res.q
-        # Collisions along the whole motion; the pusher's ball is exempt from the object throughout
-        # (the object turns away from it), the catcher's while it touches.
-        X_all = np.concatenate([X_ref, X_out, X_to[None]])
-        qc_all = np.concatenate([q_c, q_out, (q_out if len(q_out) else q_c)[-1:]])
-        qp_all = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(X_out) + 1, tl.n))])
-        # The catcher's ball touches until it has slid out or backed off half way.
-        touch_c = np.r_[np.ones(T, bool), s < 0.5 * s[-1] if len(X_out) else np.zeros(0, bool), mode == "hold"]
-        touching = np.stack([np.ones(len(X_all), bool), touch_c], axis=1)
-        if catcher == "left":
-            touching = touching[:, ::-1]
-        q_l, q_r = (qc_all, qp_all) if catcher == "left" else (qp_all, qc_all)
-        ok, why_col = _collision_free(env, q_l, q_r, X_all, touching, P.check_every)
-        if not ok:
-            why = f"contact {c}: {why_col}"
-            continue
-        break
-    else:
+            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, *got)
+            break
+        if found is not None:
+            break
+    if found is None:
         raise TumbleError("no_catcher", f"step {k}: no catcher works ({why})")
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, q_c, X_out, tgt_out, q_out = found
+    T = len(theta)
+    tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
 
     # Forces: the tumbling MPC, one run per segment of the roll (at rest at every switch).
     seg = np.array([roll.segment_of(th) for th in theta])
