@@ -174,8 +174,9 @@ def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.nd
     object"; ``stages.execute`` shifts its target by the rolling, :func:`rolling_shift`): over a
     90° tumble a ball that keeps its orientation rolls 3 cm along the face, off a contact near the
     edge. Here the ball's rotation about the object's turning axis (its part tangent to the contact,
-    whose outward normal is ``n_O``, O) follows the object's, ``R_ball(t) = R_WO(t) R_WO(0)^T R_ball(0)``
-    about that axis; the rest (spin about the normal, rolling along the axis) is left to the posture.
+    whose outward normal is ``n_O``, O) follows the object's, row to row (the ball turned by the
+    object's turn since the previous row, about that axis only); the rest (spin about the normal,
+    rolling along the axis) is left to the posture.
     Damped least squares with task priority: the position, then that rotation error in its null space;
     geometric Jacobian, joint limits by clamping, on every ``every``-th row and the last, seeded from
     the previous (one branch), joints interpolated between.
@@ -187,7 +188,6 @@ def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.nd
     keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
     R_rel = X_WO[:, :3, :3] @ X_WO[0, :3, :3].T
     q = np.clip(np.asarray(q0, dtype=float), a.lower, a.upper)
-    R_b0 = robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
     lam2 = 1e-6
     moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
     out, why = np.zeros((len(keys), n)), "ok"
@@ -202,7 +202,9 @@ def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.nd
             axis = d / np.linalg.norm(d)
         S = (axis - (axis @ n_W) * n_W)[None]
         S /= max(np.linalg.norm(S), 1e-9)
-        R_t = R_rel[i] @ R_b0
+        # Incrementally: the ball as it is, turned by the object's turn since the last key row (an
+        # absolute target would leak the free components' drift into the tracked one).
+        R_t = R_rel[i] @ R_rel[keys[m - 1] if m else i].T @ robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
         free = np.ones(n)
         for _ in range(iters):
             F = robot.fk(arm, q[None])[0]
