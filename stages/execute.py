@@ -186,6 +186,8 @@ class Params:
         time). The Jacobian, gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
+    fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
+        the plan's overhanging one (USP).
     success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``.
     seed : seed of the perturbations (``randomize``).
     randomize : perturb friction by +-friction_jitter (relative), the CoM by +-com_jitter (m per
@@ -215,6 +217,7 @@ class Params:
     model_period: int = 4
     object_margin: float = 1e-4
     fall_tilt_deg: float = 30.0
+    fall_distance: float = 0.05
     success_pos: float = 0.01
     success_yaw_deg: float = 2.0
     seed: int = 0
@@ -1173,7 +1176,11 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
     X_all = se3.matrix_from_columns({c: log[c] for c in se3.POSE_COLUMNS})
     com_all = se3.transform_points(X_all, com_O)
     tilt = float(np.degrees(log["tilt_error"].max()))
-    off_table = ~scene.on_table(com_all) | (com_all[:, 2] < 0.0)
+    # Off the table: the CoM beyond its edge where the plan's is not (in USP the plan itself holds it
+    # overhanging, held by a ball: then only when it is also fall_distance from the plan's), or below it.
+    com_plan = se3.transform_points(plan.X_WO, com_O)
+    off_table = (~scene.on_table(com_all) & (scene.on_table(com_plan) | (log["com_error"] > params.fall_distance))) \
+        | (com_all[:, 2] < 0.0)
     fell_reason = ""
     if tilt > params.fall_tilt_deg:
         fell_reason = f"tilted {tilt:.1f} deg from the plan"

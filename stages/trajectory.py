@@ -565,7 +565,8 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     X_all = np.concatenate([X_ref, X_out, X_to[None]])
     qc_all = np.concatenate([q_c, q_out, (q_out if len(q_out) else q_c)[-1:]])
     qp_all = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(X_out) + 1, q_p.shape[1]))])
-    touch_c = np.r_[np.ones(T, bool), (s < s[-1]) if mode == "slide" else (s < 0.5 * s[-1]), mode == "hold"]
+    out = s < (s[-1] if mode == "slide" else 0.5 * s[-1]) if len(s) else np.zeros(0, bool)
+    touch_c = np.r_[np.ones(T, bool), out, mode == "hold"]
     touching = np.stack([np.ones(len(X_all), bool), touch_c], axis=1)
     if catcher == "left":
         touching = touching[:, ::-1]
@@ -675,8 +676,12 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
                                  -env.n_O[[c_p, c]], p_edge, t_prof[rows] - t_prof[rows[0]], X_ref[rows],
                                  env.mp, contact_mask=np.stack([on_p[rows], np.ones(len(rows), bool)], axis=1))
         if res.status != "ok":
-            raise TumbleError("mpc_infeasible", f"step {k}: the tumbling MPC fails at row {res.fail_step} of "
-                              f"segment {s_id} ({res.fail_reason})")
+            why = f"step {k}: the tumbling MPC fails at row {res.fail_step} of segment {s_id} ({res.fail_reason})"
+            if mode == "hold" and not on_p[rows[min(res.fail_step, len(rows) - 1)]]:
+                off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
+                why += (f": after the release the destination grasp's catching contact {c} (its normal "
+                        f"{off:.0f} deg from the landing face's) cannot hold the object alone")
+            raise TumbleError("mpc_infeasible", why)
         X_mpc[rows], f_mpc[rows], f_tab[rows] = res.X_WO, res.f_eef_W, res.f_table_W
         errs.append(float(np.max(res.tracking_error)))
 
@@ -729,7 +734,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         if res.status != "ok":
             raise TumbleError(res.status, f"step {k}: the {arm} arm's way back: {res.reason}")
         tl.move_arm(arm, res.path, X_to, k, tl.contact[arm])
-    if usp:  # the pusher takes its contact of the destination grasp while the catcher holds
+    if usp and f"{pusher}_after" in step["transit"]:  # the pusher takes its contact of the grasp
         path = np.asarray(step["transit"][f"{pusher}_after"], dtype=float)
         tl.move_arm(pusher, path, X_to, k, _contact_at(env, pusher, path[-1], X_to, f"plan step {k}"))
     return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "release_deg": float(np.degrees(th_r)),

@@ -471,7 +471,7 @@ def _tumble_plan(analysis, table_size, start_xy=(-0.05, 0.12)):
     d["table"]["size"] = list(table_size)
     d["obstacles"] = []
     d["start"] = {"down": [0, 0, -1], "xy": list(start_xy), "yaw_deg": 180}
-    d["goal"] = {"down": [0, 1, 0], "xy": [start_xy[0], start_xy[1] - 0.33], "yaw_deg": 180}
+    d["goal"] = {"down": [0, 1, 0], "xy": [start_xy[0], 0.0], "yaw_deg": 180}  # not used here
     scene = scene_from_dict(d, SCENE_PATH)
     model, tables = load_object_model(analysis)
     X_from, g = placement_pose(scene.start, model, "start")
@@ -579,3 +579,46 @@ def test_tumble_without_the_catcher_goes_over(piano_analysis, pivot_case):
     # with its edge slid 2 cm.
     assert not ex.metrics["success"] and ex.metrics["fell"]
     assert ex.metrics["max_tilt_deviation_deg"] > 30.0 and ex.metrics["max_edge_slip"] > 0.01
+
+
+@pytest.mark.slow
+def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_analysis, pivot_case):
+    """A 0.42 m table: on its back the piano's CoM lies 5 cm beyond the edge, a USP pose (Fig. 14).
+    Into USP the plan names the destination grasp, whose catching ball holds the object alone; here
+    that grasp is made by hand: the catcher under the overhang, on the back face, with the joints the
+    same tumble into SP ends its catch with (the plan's ``right_after`` transit ends there). The
+    catcher lowers the piano onto the table's edge and keeps holding it; the SP tumble, whose catcher
+    backs off, lets it fall off the table."""
+    import copy
+
+    from stages import artifacts, trajectory
+
+    scene, plan, X_to = _tumble_plan(piano_analysis, (0.9, 0.42), start_xy=(-0.05, 0.0714))
+    summ = artifacts.read_json(piano_analysis / "analysis.json", "analysis")
+    com_O = np.asarray(summ["com"])
+    assert not scene.on_table(se3.transform_points(X_to, com_O)[None])[0]  # USP: it overhangs
+
+    def run(p):
+        cols, stats = trajectory.compute(scene, piano_analysis, p, trajectory.Params())
+        assert stats["status"] == "ok", stats
+        ex = execute.simulate(scene, piano_analysis / "object.ply", float(summ["mass"]), com_O,
+                              np.asarray(summ["inertia"]), cols, X_to, pivot_case["params"])
+        return stats["tumbles"][0], cols, ex
+
+    info_sp, cols_sp, ex_sp = run(copy.deepcopy(plan))
+    assert info_sp["mode"] == "place"
+    assert ex_sp.metrics["fell"] and not ex_sp.metrics["success"]  # measured: it tips 108 deg, over the edge
+    step = plan["steps"][0]
+    catch = np.flatnonzero(np.asarray(cols_sp["phase"]) == "catch")[-1]
+    step.update(support="USP", grasp_to=-1)
+    step["transit"]["right_after"] = [np.asarray(cols_sp["q_right"][catch]).tolist()]
+    info, cols, ex = run(plan)
+    assert info["mode"] == "hold" and info["catch_contact"] == info_sp["catch_contact"]
+    m = ex.metrics
+    assert m["success"] and not m["fell"] and not m["collision"], m
+    assert m["final_position_error"] < 0.003 and m["final_yaw_error_deg"] < 0.5
+    assert m["max_tilt_deviation_deg"] < 2.0 and m["max_edge_slip"] < 0.005
+    # The catcher still holds it at the end, on the contact the plan gave it.
+    assert ex.log["right_touch"][-1] and np.asarray(cols["right_contact"])[-1]
+    q_end = np.asarray(cols["q_right"][-1])
+    assert np.abs(q_end - step["transit"]["right_after"][-1]).max() < 1e-9
