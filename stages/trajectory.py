@@ -167,7 +167,7 @@ def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int, c
 
 
 def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, q0: np.ndarray,
-              every: int, iters: int = 12, tol: float = 1e-3) -> tuple[np.ndarray, str]:
+              every: int, iters: int = 12, tol: float = 1e-3, both: bool = False) -> tuple[np.ndarray, str]:
     """Joint path ``(T, n)`` that puts the ball on ``targets (T, 3)`` (W) *and turns it with the object*.
 
     A ball on a turning object rolls unless it turns with it (notes: "the ball turns with the
@@ -195,13 +195,16 @@ def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.nd
     for m, i in enumerate(keys):  # a few dozen key rows
         q_prev = q.copy()
         # The rotation about the object's turning axis rolls the ball across its face; the other
-        # tangential part (along the axis) is left free, which keeps the arm's postures feasible.
+        # tangential part (rolling along the axis) is left free unless ``both``: that keeps more of the
+        # arm's postures feasible.
         n_W = se3.rotate_vectors(X_WO[i], n_O)
         d = Rotation.from_matrix(R_rel[min(i + 1, T - 1)] @ R_rel[max(i - 1, 0)].T).as_rotvec()
         if np.linalg.norm(d) > 1e-9:
             axis = d / np.linalg.norm(d)
         S = (axis - (axis @ n_W) * n_W)[None]
         S /= max(np.linalg.norm(S), 1e-9)
+        if both:
+            S = np.vstack([S, np.cross(n_W, S[0])])
         # Incrementally: the ball as it is, turned by the object's turn since the last key row (an
         # absolute target would leak the free components' drift into the tracked one).
         R_t = R_rel[i] @ R_rel[keys[m - 1] if m else i].T @ robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
@@ -513,8 +516,8 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     robot, model, r = env.robot, env.model, env.r
     T = len(X_ref)
     tgt_c = _ball_centres(X_ref, env.p_O[c], env.n_O[c], r)
-    if mode == "hold":  # backwards from the plan's final configuration
-        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1)
+    if mode == "hold":  # backwards from the plan's final configuration; it must end on its contact
+        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1, both=not follow)
         q_c = q_c[::-1]
     else:
         first = robot.ik(catcher, tgt_c[:1], rng=np.random.default_rng(0))
@@ -645,20 +648,22 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
             raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
         q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, tl.n))])
         # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
-        # turning with the object (no rolling) when that rolls it off its face or fails; into USP only
-        # the latter, solved backwards from the plan's final configuration.
-        for follow in ((True,) if mode == "hold" else (False, True)):
+        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
+        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
+        # with the object (no rolling at all), else about the turning axis only (rolling along it).
+        for follow in (False, True):  # into USP: turning with the object about both tangents, then one
             got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_after[catcher], follow, P)
             if isinstance(got, str):
                 why = f"contact {c}: {got}"
                 continue
-            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, *got)
+            ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
+            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got)
             break
         if found is not None:
             break
     if found is None:
         raise TumbleError("no_catcher", f"step {k}: no catcher works ({why})")
-    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, q_c, X_out, tgt_out, q_out = found
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = found
     T = len(theta)
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
 
@@ -737,7 +742,8 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if usp and f"{pusher}_after" in step["transit"]:  # the pusher takes its contact of the grasp
         path = np.asarray(step["transit"][f"{pusher}_after"], dtype=float)
         tl.move_arm(pusher, path, X_to, k, _contact_at(env, pusher, path[-1], X_to, f"plan step {k}"))
-    return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "release_deg": float(np.degrees(th_r)),
+    return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "catcher_ik": ik,
+            "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
 
