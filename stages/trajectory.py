@@ -44,9 +44,17 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
 normal within ``catch_cone`` of the landing direction), largest lever arm about the axis first (less
 the offset from the CoM along the axis), the first whose joint path (IK along the whole motion,
-seeded step to step) and collisions (the batched checker of ``stages.robot``, at every other row)
-pass. Into USP the catcher's joints are solved backwards from the plan's final configuration, so the
-following USP regrasp starts exactly where the plan expects. The forces come from the tumbling MPC
+seeded step to step), rolling and collisions (the batched checker of ``stages.robot``, at every
+other row) pass. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
+object (``stages.execute`` shifts its target by :func:`rolling_shift`), 2-4 cm over a 90° tumble; its
+contact must stay ``roll_margin`` inside its face, else the joints are solved by :func:`ik_follow`,
+which turns the ball with the object about the turning axis (the pusher's always are). Into USP the
+catcher's joints are solved backwards from the plan's final configuration, so the following USP
+regrasp starts exactly where the plan expects; its contact must be able to hold the object through
+the fall, which a contact on a face other than the landing one is not (the lying piano's top face:
+the only USP grasps the sampler gives it, since ``stages.sample`` refuses a ball under the overhang as
+``eef_under_object`` and for its centre below the table top); the MPC is then infeasible after the
+release, and the failure says so. The forces come from the tumbling MPC
 (``stages.mpc.run_tumble_mpc``), one run per segment of the roll, with the pusher switched off at
 its release. After the tumble each arm goes (a planned transit) to the configuration the plan
 assumes at the end of the step: the pusher to the end of its push, the catcher back where it was
