@@ -23,7 +23,9 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
    the on-table support vertices and both balls must hold it. The margins recorded are the best
    pivot margin (SP) and, in USP, the margins of holding with the left or the right ball alone
-   (which a regrasp in USP needs, §5.2.2).
+   (which a regrasp in USP needs, §5.2.2). Every pose of a placement is its resting pose turned
+   about the vertical and shifted, and the stability LP is invariant under that motion, so the pivot
+   tests are solved once per (placement, pair, corner) and shared by all poses of the placement.
 """
 
 from __future__ import annotations
@@ -169,8 +171,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
 
     # Stability.
     live = np.flatnonzero(reason == "")
-    margins = _stability(scene, model, tables, ps, pose_idx[live], X[live], p_l[live], p_r[live], n_l[live],
-                         n_r[live], params.corner_cluster)
+    margins = _stability(scene, model, tables, ps, pose_idx[live], pair_idx[live], X[live], p_l[live], p_r[live],
+                         n_l[live], n_r[live], params.corner_cluster)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -200,52 +202,76 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     return grasps, rejects, timings
 
 
-def _stability(scene, model, tables, ps, pose_id, X, p_l, p_r, n_l, n_r, corner_cluster: float) -> dict:
-    """Stability verdicts and margins of grasp candidates (see the module docstring, step 5)."""
+def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float) -> dict:
+    """Stability verdicts and margins of grasp candidates (see the module docstring, step 5).
+
+    The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
+    placement's resting pose ``X_TO`` turned about the vertical and shifted (checked here to 1e-9), and
+    the stability LP is invariant under such motions (friction pyramids, wrench axes and the margin's
+    frame D all turn with the object), so each (placement, pair, corner) is solved once, in the resting
+    pose, and its verdict and margin hold for every pose of that placement. Only which corners lie on
+    the table depends on the pose.
+    """
     N = len(X)
     mass = scene.object.mass
-    com = se3.transform_points(X, model.com)
     L = float(np.linalg.norm(tables["summary"]["extents"]) / 2)
     prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
                            f_max=scene.robot.max_eef_force)
-    eef_p = np.stack([p_l, p_r], axis=1)
-    eef_n = -np.stack([n_l, n_r], axis=1)  # inward normals
     corners = poses.pivot_corners(model, corner_cluster)
     half = np.asarray(scene.table.size) / 2
-    out = {"hold_left": np.full(N, np.nan), "hold_right": np.full(N, np.nan), "pivot_vertices": [None] * N}
+    out = {"hold_left": np.full(N, np.nan), "hold_right": np.full(N, np.nan), "pivot_vertices": [None] * N,
+           "margin": np.zeros(N)}
     usp = ps.support[pose_id] == "USP"
     g = ps.placement[pose_id]
-    # Pivot on each support corner that lies on the table, with both balls (QS gait in SP, DS in USP).
     kmax = max(len(c) for c in corners)
-    V = np.zeros((N, kmax, 3))
-    mask = np.zeros((N, kmax), bool)
-    ids = -np.ones((N, kmax), np.int64)
-    for i in range(N):  # fill a padded corner table (four or so corners a pose); the LPs are batched
-        c = corners[g[i]]
-        V[i, :len(c)] = se3.transform_points(X[i], model.vertices[c])
-        mask[i, :len(c)] = np.all(np.abs(V[i, :len(c), :2]) <= half, axis=1)
-        ids[i, :len(c)] = c
-    rows, cols = np.nonzero(mask)
-    res = stability.evaluate_threaded(mass, com[rows], V[rows, cols][:, None], None, eef_p[rows], eef_n[rows],
-                                      None, L, prm, compute_margin=False)
+    cid = -np.ones((len(corners), kmax), np.int64)  # padded corner ids per placement, sorted
+    for gi, c in enumerate(corners):
+        cid[gi, :len(c)] = c
+    ids = cid[g]                                                                   # (N, kmax)
+    V = se3.transform_points(X[:, None], model.vertices[np.maximum(ids, 0)])
+    on = (ids >= 0) & np.all(np.abs(V[..., :2]) <= half, axis=2)                 # corner on the table
+
+    # One class per (placement, pair); a pose that is not an upright turn of X_TO is its own class.
+    Y = X @ se3.invert(model.X_TO[g])
+    upright = np.all(np.abs(Y[:, 2, :] - [0.0, 0.0, 1.0, 0.0]) <= 1e-9, axis=1)
+    key = np.stack([g, pair_id, np.where(upright, -1, np.arange(N))], axis=1)
+    ukey, rep, cls = np.unique(key, axis=0, return_index=True, return_inverse=True) if N else (
+        np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    cls = cls.reshape(-1)
+    C = len(ukey)
+    X_c = np.where(upright[rep][:, None, None], model.X_TO[ukey[:, 0]], X[rep])  # (C, 4, 4)
+    con, pairs = tables["contacts"], tables["pairs"]
+    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    ab = np.stack([pairs["contact_a"][ukey[:, 1]], pairs["contact_b"][ukey[:, 1]]], axis=1)     # (C, 2)
+    eef_p = se3.transform_points(X_c[:, None], p_O[ab])
+    eef_n = -se3.rotate_vectors(X_c[:, None], n_O[ab])                              # inward normals
+    com_c = se3.transform_points(X_c, model.com)
+    V_c = se3.transform_points(X_c[:, None], model.vertices[np.maximum(cid[ukey[:, 0]], 0)])  # (C, kmax, 3)
+    need = np.zeros((C, kmax), bool)
+    np.logical_or.at(need, cls, on)
+    rows, cols = np.nonzero(need)
+    res = stability.evaluate(mass, com_c[rows], V_c[rows, cols][:, None], None, eef_p[rows], eef_n[rows], None, L,
+                             prm, compute_margin=False)
+    holds_c = np.zeros((C, kmax), bool)
+    holds_c[rows, cols] = res.stable
+    holds = on & holds_c[cls]                                                      # (N, kmax)
+    has = holds.any(axis=1)
+    first = np.argmax(holds, axis=1)
+    out["pivot_vertices"] = [ids[i][holds[i]] for i in range(N)]
     # Margins cost twelve LPs each: measure them on one pivot corner per grasp, the first that holds.
-    first = np.full(N, -1)
-    hit = np.flatnonzero(res.stable)
-    first[rows[hit][::-1]] = hit[::-1]
-    has = np.flatnonzero(first >= 0)
-    k = first[has]
-    m = stability.evaluate_threaded(mass, com[rows[k]], V[rows[k], cols[k]][:, None], None, eef_p[rows[k]],
-                                    eef_n[rows[k]], None, L, prm, R_WD=X[rows[k], :3, :3])
-    out["stable"] = (first >= 0) & ~usp
-    out["margin"] = np.zeros(N)
-    out["margin"][has] = m.margin
-    stable_ids = np.where(res.stable, ids[rows, cols], -1)
-    per_row = np.split(stable_ids, np.cumsum(np.bincount(rows, minlength=N))[:-1]) if N else []
-    out["pivot_vertices"] = [np.sort(v[v >= 0]) for v in per_row]
+    mk, minv = np.unique(np.stack([cls[has], first[has]], axis=1), axis=0, return_inverse=True)
+    m = stability.evaluate(mass, com_c[mk[:, 0]], V_c[mk[:, 0], mk[:, 1]][:, None], None, eef_p[mk[:, 0]],
+                           eef_n[mk[:, 0]], None, L, prm, R_WD=X_c[mk[:, 0], :3, :3])
+    out["margin"][has] = m.margin[minv.reshape(-1)]
+    out["stable"] = has & ~usp
     # USP: the object on the table's edge (its support face clipped to the table top) with both balls,
     # then with each ball alone.
     us = np.flatnonzero(usp)
     if len(us):
+        com = se3.transform_points(X, model.com)
+        eef_p = np.stack([p_l, p_r], axis=1)
+        eef_n = -np.stack([n_l, n_r], axis=1)  # inward normals
         uniq, first = np.unique(pose_id[us], return_index=True)
         polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half)
                  for p, f in zip(uniq, first, strict=True)}

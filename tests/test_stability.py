@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.optimize import linprog
@@ -18,6 +21,7 @@ from stages.stability import (
     wrench_matrix,
 )
 
+REPO = Path(__file__).resolve().parents[1]
 G0 = 9.81
 C30 = np.cos(np.pi / 6)  # inscribed radius of the unit hexagon: vertical friction of a side contact
 
@@ -417,7 +421,10 @@ def test_invariant_under_rigid_motion_about_z():
 
 
 def test_threaded_evaluation_equals_the_serial_one():
-    import bench.bench_stability as bs
+    # By path: bench/ is not a package on sys.path under the plain `pytest` entry point.
+    spec = importlib.util.spec_from_file_location("bench_stability", REPO / "bench" / "bench_stability.py")
+    bs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bs)
 
     for case in bs.make_candidates(3000, 1).values():
         args = [case[k] for k in ("mass", "com_W", "table_pts_W", "table_mask", "eef_pts_W", "eef_normals_W",
