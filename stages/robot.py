@@ -1221,11 +1221,14 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
 
     Only ``test (C, m)`` pairs are examined. Two numpy filters run before python-fcl: the mesh's
-    bounding sphere, then separation by one of its convex-hull face planes. What remains goes to
-    ``fcl.collide`` (capsule inflated by the margin); a capsule with no triangle contact can still lie
+    bounding sphere, then separation from its convex hull: the capsule's segment, clipped by every hull
+    face plane pushed out by the capsule radius (Cyrus–Beck), is empty. What remains goes to
+    ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row already
+    hit by a lower capsule is not tested again. A capsule with no triangle contact can still lie
     wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
-    mesh, trimesh's ray test otherwise). Returns the hits as ``(row, capsule)`` index arrays, ordered
-    by capsule then row.
+    mesh, trimesh's ray test otherwise). Returns hits as ``(row, capsule)`` index arrays, ordered by
+    capsule then row, which include each hit row's lowest colliding capsule (not necessarily every
+    capsule that collides with it).
     """
     import fcl
 
@@ -1244,25 +1247,37 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     rc = rr[c]
     n, d = msh.planes[:, :3], msh.planes[:, 3]
     sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
-    separated = np.any((sa > rc) & (sb > rc), axis=0)
+    # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
+    ds = sb - sa
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = (rc - sa) / ds
+    lo = np.max(np.where(ds < 0, bound, 0.0), axis=0, initial=0.0)
+    hi = np.min(np.where(ds > 0, bound, 1.0), axis=0, initial=1.0)
+    separated = (lo > hi) | np.any((ds == 0) & (sa > rc), axis=0)
     c, k, a, b, rc, sa = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
         sa[:, ~separated]
     hit = np.zeros(len(c), bool)
+    tested = np.zeros(len(c), bool)
     req = fcl.CollisionRequest()
     u = b - a
     length = np.linalg.norm(u, axis=0)
     Rz = se3.rotation_between(np.array([0.0, 0.0, 1.0]), np.where(length > 1e-12, u, [[0.0], [0.0], [1.0]]).T)
     centre = ((a + b) / 2).T
     shapes: dict = {}  # one fcl object per capsule (its length and radius do not change with q)
-    for i, ci in enumerate(c.tolist()):
+    row_hit = np.zeros(X_OW.shape[0], bool).tolist()
+    for i, (ci, ki) in enumerate(zip(c.tolist(), k.tolist(), strict=True)):  # capsule-major (np.nonzero)
+        if row_hit[ki]:
+            continue
         if ci not in shapes:
             g = fcl.Sphere(rc[i]) if length[i] <= 1e-12 else fcl.Capsule(rc[i], length[i])
             shapes[ci] = fcl.CollisionObject(g, fcl.Transform())
         o = shapes[ci]
         o.setTransform(fcl.Transform(Rz[i], centre[i]))
-        hit[i] = fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0
+        tested[i] = True
+        if fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0:
+            hit[i] = row_hit[ki] = True
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
-    inside = ~hit & np.all(sa <= 0.0, axis=0)
+    inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
     if inside.any() and not msh.convex:
         inside[inside] = msh.mesh.contains(a[:, inside].T)
     hit |= inside

@@ -391,6 +391,44 @@ def test_collision_batch_equals_loop(scene_robot):
     assert empty[0].shape == empty[1].shape == (0,)
 
 
+def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl():
+    """The hull filters (bounding sphere, Cyrus-Beck clipping) and the early exit per row only skip
+    work: the first colliding capsule of every row is the one a plain fcl test of all pairs finds."""
+    import fcl
+
+    from tests.conftest import l_prism
+
+    mesh = l_prism()
+    msh = rb._make_mesh(mesh, "L prism")
+    rng = np.random.default_rng(3)
+    C, m = 5, 60
+    centre = mesh.bounds.mean(axis=0)
+    A = centre[:, None, None] + rng.uniform(-0.35, 0.35, (3, C, m))
+    u = rng.normal(0.0, 1.0, (3, C, m))
+    B = A + u / np.linalg.norm(u, axis=0) * rng.uniform(0.02, 0.2, C)[:, None]  # a capsule keeps its length
+    radius = rng.uniform(0.005, 0.04, C)
+    X_OW = np.broadcast_to(np.eye(4), (m, 4, 4))
+    test = rng.random((C, m)) < 0.9
+    k, c = rb._mesh_hits(msh, X_OW, A, B, radius, 0.0, test)
+    got = {}
+    for kk, cc in zip(k.tolist(), c.tolist(), strict=True):
+        got[kk] = min(got.get(kk, C), cc)
+    want = {}
+    for ci in range(C):
+        for ki in np.flatnonzero(test[ci]):
+            a, b = A[:, ci, ki], B[:, ci, ki]
+            u = b - a
+            g = fcl.Capsule(radius[ci], np.linalg.norm(u))
+            R = se3.rotation_between(np.array([0.0, 0.0, 1.0]), u / np.linalg.norm(u))
+            o = fcl.CollisionObject(g, fcl.Transform(R, (a + b) / 2))
+            hit = fcl.collide(o, msh.fcl_obj, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
+            hit = hit or bool(mesh.contains(a[None])[0])  # wholly inside
+            if hit and ki not in want:
+                want[int(ki)] = ci
+    assert 5 < len(want) < m  # the sample mixes free and colliding rows
+    assert got == want
+
+
 # ----------------------------------------------------------------------------------------------------
 # Bad input
 
