@@ -973,6 +973,8 @@ class CollisionFn:
     ``env_collision:<link>/<obstacle>``, ``self_collision:<link>/<trunk link>``,
     ``self_collision:<left link>/<right link>``, ``self_collision:<link>/<link>`` (one arm),
     ``env_collision:<link>/object``; ``"ok"`` when free. Each stage only looks at the rows still free.
+    With ``blame=True`` it also returns ``arms (N, 2)`` bool: the arms (left, right) whose links the
+    reported pair names (both for a left/right pair; none for a free row).
 
     The self-collision pairs left out are described in ``_self_pairs`` (adjacent links, pairs
     touching at ``q = 0``, pairs that stay apart over random postures). The ball's contact with the
@@ -1017,7 +1019,7 @@ class CollisionFn:
         self.trunk_box_pairs, self.trunk_cap_pairs, self.intra_pairs, self.lr_pairs = _self_pairs(robot)
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
-                 touching: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 touching: np.ndarray | None = None, *, blame: bool = False) -> tuple[np.ndarray, ...]:
         arms, mg = self.arms, self.margin
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
@@ -1043,7 +1045,7 @@ class CollisionFn:
                 r = rows[k]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
                     < (a.cap_r[c] + mg) ** 2
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, ea, eb, er in self.caps:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
@@ -1054,7 +1056,7 @@ class CollisionFn:
                 ones = np.ones(len(c))
                 hit = _seg_seg_dist2(A[:, c, r], B[:, c, r], ea[:, None] * ones, eb[:, None] * ones) \
                     < (a.cap_r[c] + er + mg) ** 2
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, rad, hh in self.cyls:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
@@ -1063,13 +1065,13 @@ class CollisionFn:
                 c, k = np.nonzero(dm <= rho[s] + mg)
                 r = rows[k]
                 hit = _seg_cyl_dist(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), rad, hh) < a.cap_r[c] + mg
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, msh in self.meshes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), A[:, :, rows], B[:, :, rows],
                                   a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
-                st.fail(rows[k], "env_collision", names[s][c], name)
+                st.fail(rows[k], "env_collision", names[s][c], name, s)
 
         # Self: the trunk's boxes and capsules.
         trunk = self.static
@@ -1085,7 +1087,7 @@ class CollisionFn:
                 r, c = rows[k], cc[p]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
                     < (r_c[c] + mg) ** 2
-                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[c[hit]], trunk.box_names[kb])
+                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[c[hit]], trunk.box_names[kb], s)
             if len(self.trunk_cap_pairs[s]):
                 rows = st.live()
                 kk, cc = self.trunk_cap_pairs[s].T
@@ -1094,7 +1096,7 @@ class CollisionFn:
                 hit = _seg_seg_dist2(trunk.cap_a[kk[p]].T, trunk.cap_b[kk[p]].T, A[:, cc[p], r], B[:, cc[p], r]) \
                     < (trunk.cap_r[kk[p]] + r_c[cc[p]] + mg) ** 2
                 st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[cc[p[hit]]],
-                           np.asarray(trunk.cap_names)[kk[p[hit]]])
+                        np.asarray(trunk.cap_names)[kk[p[hit]]], s)
 
         # Self: left against right, only on rows whose arms' bounding boxes overlap.
         rows = st.live()
@@ -1111,7 +1113,7 @@ class CollisionFn:
             hit = _seg_seg_dist2(Al[:, i[p], r], Bl[:, i[p], r], Ar[:, j[p], r], Br[:, j[p], r]) \
                 < (arms[0].cap_r[i[p]] + arms[1].cap_r[j[p]] + mg) ** 2
             st.fail(r[hit], "self_collision", np.asarray(arms[0].cap_names)[i[p[hit]]],
-                       np.asarray(arms[1].cap_names)[j[p[hit]]])
+                    np.asarray(arms[1].cap_names)[j[p[hit]]], None)
 
         # Self: within one arm.
         for s, a in enumerate(arms):
@@ -1126,7 +1128,7 @@ class CollisionFn:
             hit = _seg_seg_dist2(A[:, i[p], r], B[:, i[p], r], A[:, j[p], r], B[:, j[p], r]) \
                 < (a.cap_r[i[p]] + a.cap_r[j[p]] + mg) ** 2
             st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[i[p[hit]]],
-                       np.asarray(a.cap_names)[j[p[hit]]])
+                    np.asarray(a.cap_names)[j[p[hit]]], s)
 
         # The object; a touching ball is exempt.
         if self.object is not None and X_WO is not None:
@@ -1139,7 +1141,9 @@ class CollisionFn:
                 test[a.cap_link == a.eef_index] = ~touch[rows, s]
                 k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), A[:, :, rows], B[:, :, rows],
                                   a.cap_r, mg, test)
-                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object")
+                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
+        if blame:
+            return st.alive, st.reason.astype(str), st.blame
         return st.alive, st.reason.astype(str)
 
 
@@ -1193,18 +1197,21 @@ def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.0
 
 
 class _Rows:
-    """Per-call bookkeeping of ``CollisionFn``: which rows are still free, and why the others are not."""
+    """Per-call bookkeeping of ``CollisionFn``: which rows are still free, why the others are not, and
+    which arms the reported pair involves."""
 
     def __init__(self, n: int):
         self.alive = np.ones(n, bool)
         self.reason = np.full(n, "ok", dtype=object)
+        self.blame = np.zeros((n, 2), bool)
 
     def live(self) -> np.ndarray:
         return np.flatnonzero(self.alive)
 
-    def fail(self, rows: np.ndarray, kind: str, first, second) -> None:
+    def fail(self, rows: np.ndarray, kind: str, first, second, arm: int | None) -> None:
         """Mark ``rows`` (candidate order, repeats allowed) as colliding between the links named
-        ``first`` and ``second`` (arrays parallel to rows, or one name); a row keeps its first pair."""
+        ``first`` and ``second`` (arrays parallel to rows, or one name); a row keeps its first pair.
+        ``arm``: index of the arm whose link collides, None for a pair of one link of each arm."""
         if len(rows) == 0:
             return
         rows, idx = np.unique(rows, return_index=True)
@@ -1213,6 +1220,9 @@ class _Rows:
                                 np.shape(first))
         second = np.broadcast_to(np.asarray(second, dtype=object), first.shape)
         self.reason[rows[new]] = kind + ":" + first[idx[new]] + "/" + second[idx[new]]
+        self.blame[rows[new], :] = arm is None
+        if arm is not None:
+            self.blame[rows[new], arm] = True
         self.alive[rows] = False
 
 

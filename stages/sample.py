@@ -152,21 +152,31 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
 
     # Collisions of the arms with the table, obstacles, the object and each other. The IK knows
     # nothing of obstacles, so a colliding candidate gets a few more IK solutions from random seeds
-    # around the rest posture (collision-aware IK by retry) before it is refused.
+    # around the rest posture (collision-aware IK by retry) before it is refused. Only the arms that
+    # the colliding pair involves are solved again (the other keeps its solution), and only the rows
+    # that got a new solution are checked again: the check of a row depends on its joints alone.
     cand = np.flatnonzero(reason == "")
-    for attempt in range(params.collision_retries + 1):
-        ok, why = collide(q_l[cand], q_r[cand], X[cand], np.ones((len(cand), 2), bool))
-        failed = cand[~ok]
-        if attempt == params.collision_retries or len(failed) == 0:
-            reason[failed] = why[~ok]
+    touching = np.ones((len(cand), 2), bool)
+    ok, why, blame = collide(q_l[cand], q_r[cand], X[cand], touching, blame=True)
+    failed, why, blame = cand[~ok], why[~ok].astype(object), blame[~ok]
+    for _ in range(params.collision_retries):
+        if len(failed) == 0:
             break
-        for arm, ball, q in (("left", ball_l, q_l), ("right", ball_r, q_r)):
+        moved = np.zeros(len(failed), bool)
+        for s, (arm, ball, q) in enumerate((("left", ball_l, q_l), ("right", ball_r, q_r))):
             a = robot.arm(arm)
-            seed = np.clip(a.q_rest + rng.normal(0.0, 0.35, (len(failed), a.dof)) * (a.upper - a.lower),
+            redo = np.flatnonzero(blame[:, s])
+            seed = np.clip(a.q_rest + rng.normal(0.0, 0.35, (len(redo), a.dof)) * (a.upper - a.lower),
                            a.lower, a.upper)
-            res = robot.ik(arm, ball[failed], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
-            q[failed[res.ok]] = res.q[res.ok]
-        cand = failed
+            res = robot.ik(arm, ball[failed[redo]], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
+            q[failed[redo[res.ok]]] = res.q[res.ok]
+            moved[redo[res.ok]] = True
+        m = np.flatnonzero(moved)
+        ok, why[m], blame[m] = collide(q_l[failed[m]], q_r[failed[m]], X[failed[m]], touching[:len(m)], blame=True)
+        keep = np.ones(len(failed), bool)
+        keep[m[ok]] = False
+        failed, why, blame = failed[keep], why[keep], blame[keep]
+    reason[failed] = why
     t3 = time.perf_counter()
 
     # Stability.

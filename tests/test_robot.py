@@ -305,6 +305,7 @@ def test_collision_free_rest_posture_is_ok(scene_robot):
     q = scene_robot.arms["left"].q_rest[None]
     ok, reason = check(q, q)
     assert ok.tolist() == [True] and reason.tolist() == ["ok"]
+    assert check(q, q, blame=True)[2].tolist() == [[False, False]]
 
 
 def test_arm_folded_down_through_the_table_hits_the_table(scene_robot):
@@ -314,6 +315,7 @@ def test_arm_folded_down_through_the_table_hits_the_table(scene_robot):
     q_right = scene_robot.arms["right"].q_rest[None]
     ok, reason = check(res.q, q_right)
     assert not ok[0] and reason[0].startswith("env_collision:left_") and reason[0].endswith("/table")
+    assert check(res.q, q_right, blame=True)[2].tolist() == [[True, False]]  # only the left arm is to blame
     # Without the table the same posture is free.
     assert make_collision_fn(scene_robot)(res.q, q_right)[0][0]
 
@@ -328,6 +330,7 @@ def test_arms_crossed_into_each_other_collide_with_each_other(scene_robot):
     assert ql.ok[0] and qr.ok[0]
     ok, reason = check(ql.q, qr.q)
     assert not ok[0] and reason[0].startswith("self_collision:left_") and "/right_" in reason[0]
+    assert check(ql.q, qr.q, blame=True)[2].tolist() == [[True, True]]
 
 
 @pytest.mark.parametrize("kind, dims", [("box", (0.02, 0.02, 0.02)), ("sphere", (0.01,)),
