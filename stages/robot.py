@@ -928,6 +928,33 @@ def _rigid_groups(a: Arm) -> np.ndarray:
     return np.cumsum(a.joint >= 0) - 1
 
 
+def _core_balls(a: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Balls that lie inside a collision capsule of ``a`` at every posture.
+
+    A capsule of the first movable link turns about the first joint's axis and nothing else moves it,
+    so a ball centred on that axis at the point ``P`` nearest the capsule's segment, of radius the
+    capsule radius minus that distance, lies inside it whatever ``q`` (rotations about the axis fix
+    ``P``). Returns capsule ids ``(K,)``, centres ``(K, 3)`` (world) and radii ``(K,)`` (m, > 0).
+    """
+    grp = _rigid_groups(a)[a.cap_link]
+    k1 = int(np.flatnonzero(a.joint >= 0)[0])
+    frames = _fk_frames(a, a.q_rest[:, None], upto=k1 + 1)
+    p1, w1 = frames[k1][1][:, 0], frames[k1][2][:, 0]
+    A, B = _capsules_W(a, a.q_rest[:, None])
+    ids, centres, radii = [], [], []
+    for c in np.flatnonzero(grp == 0):
+        u = B[:, c, 0] - A[:, c, 0]
+        v0 = (A[:, c, 0] - p1) - np.dot(A[:, c, 0] - p1, w1) * w1  # segment minus its axial part
+        v1 = u - np.dot(u, w1) * w1
+        t = float(np.clip(-np.dot(v0, v1) / np.dot(v1, v1), 0.0, 1.0)) if np.dot(v1, v1) > 1e-18 else 0.0
+        rho = a.cap_r[c] - np.linalg.norm(v0 + t * v1)
+        if rho > 0.0:
+            ids.append(c)
+            centres.append(p1 + np.dot(A[:, c, 0] + t * u - p1, w1) * w1)
+            radii.append(rho)
+    return np.array(ids, dtype=int), np.array(centres).reshape(-1, 3), np.array(radii)
+
+
 def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Points ``P (3, ...)`` expressed in a frame whose inverse pose is ``X_inv (4, 4)``."""
     t = X_inv[:3, 3].reshape((3,) + (1,) * (P.ndim - 1))
@@ -1017,6 +1044,7 @@ class CollisionFn:
         self.box_inv = (np.stack([se3.invert(X) for X in st.box_X_W]) if len(st.box_X_W)
                         else np.zeros((0, 4, 4)))
         self.trunk_box_pairs, self.trunk_cap_pairs, self.intra_pairs, self.lr_pairs = _self_pairs(robot)
+        self.cores = [_core_balls(a) for a in self.arms]
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
                  touching: np.ndarray | None = None, *, blame: bool = False) -> tuple[np.ndarray, ...]:
@@ -1146,6 +1174,31 @@ class CollisionFn:
             return st.alive, st.reason.astype(str), st.blame
         return st.alive, st.reason.astype(str)
 
+
+
+    def object_blocks_arm(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Object poses at which some posture-independent part of an arm (``_core_balls``) overlaps the
+        object, so that every posture of that arm collides with it (the margin only adds to that).
+
+        Returns ``blocked (N, 2)`` bool (left, right) and ``reason (N,)`` str: the collision the
+        checker would report, ``env_collision:<link>/object`` for the first blocked arm, else ``"ok"``.
+        """
+        X_WO = np.asarray(X_WO, dtype=float).reshape(-1, 4, 4)
+        N = len(X_WO)
+        blocked = np.zeros((N, 2), bool)
+        reason = np.full(N, "ok", dtype=object)
+        if self.object is None or N == 0:
+            return blocked, reason.astype(str)
+        X_OW = se3.invert(X_WO)
+        for s, (a, (ids, centres, radii)) in enumerate(zip(self.arms, self.cores, strict=True)):
+            if not len(ids):
+                continue
+            P = np.broadcast_to(centres.T[:, :, None], (3, len(ids), N))
+            k, c = _mesh_hits(self.object, X_OW, P, P, radii, 0.0, np.ones((len(ids), N), bool))
+            blocked[k, s] = True
+            fresh = reason[k] == "ok"
+            reason[k[fresh]] = "env_collision:" + np.asarray(a.cap_names, dtype=object)[ids[c[fresh]]] + "/object"
+        return blocked, reason.astype(str)
 
 
 def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.02):

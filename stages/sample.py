@@ -16,16 +16,22 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
 1. ``eef_under_object``: a contact whose outward normal points down (the ball would be under the
    object, Fig. 5 r1/r2), or ``env_collision:ball/table``: a ball centre too close to the table;
 2. ``normal_away``: a contact normal facing away from its arm's shoulder (Fig. 5 r3/r4);
-3. ``ik_unreachable`` / ``joint_limit``: batched position IK of each ball centre (``stages.robot``);
-4. ``env_collision:*`` / ``self_collision:*``: the arms against the table, obstacles, object and
-   each other;
-5. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
+3. ``env_collision:<first link>/object``: the object, in that pose, overlaps a part of an arm that
+   no posture moves (``CollisionFn.object_blocks_arm``: link 1 only turns about its own axis), so
+   every candidate of the pose collides whatever its IK (one test per pose);
+4. ``ik_unreachable`` / ``joint_limit``: batched position IK of each ball centre (``stages.robot``);
+5. ``env_collision:*`` / ``self_collision:*``: the arms against the table, obstacles, object and
+   each other; a colliding candidate gets new IK solutions, for the arms the colliding pair
+   involves, up to ``collision_retries`` times;
+6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
-   the on-table support vertices and both balls must hold it. The margins recorded are the best
-   pivot margin (SP) and, in USP, the margins of holding with the left or the right ball alone
-   (which a regrasp in USP needs, §5.2.2). Every pose of a placement is its resting pose turned
-   about the vertical and shifted, and the stability LP is invariant under that motion, so the pivot
-   tests are solved once per (placement, pair, corner) and shared by all poses of the placement.
+   the on-table support vertices and both balls must hold it. The margins recorded are, in SP, the
+   pivot margin on the first support corner (in hull vertex order) that holds, in USP the margin of
+   holding with both balls and those of holding with the left or the right ball alone (which a
+   regrasp in USP needs, §5.2.2; -1 when that ball alone cannot hold it). Every pose of a
+   placement is its resting pose turned about the vertical and shifted, and the stability LP is
+   invariant under that motion, so the pivot tests are solved once per (placement, pair, corner)
+   and shared by all poses of the placement.
 """
 
 from __future__ import annotations
@@ -136,6 +142,11 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
             np.linalg.norm(n[:, :2], axis=1) * np.linalg.norm(to_s, axis=1), 1e-12)
         flat = np.linalg.norm(n[:, :2], axis=1) < 0.3  # a top face is reached from above
         refuse(~flat & (cos < np.cos(params.away_angle)), "normal_away")
+    # Poses where the object overlaps a part of an arm that no posture moves out of it: every
+    # candidate of the pose collides, whatever its IK (one check per pose).
+    blocked, why = collide.object_blocks_arm(ps.X_WO[kept])
+    hit = np.repeat(blocked.any(axis=1), K) & (reason == "")
+    reason[hit] = np.repeat(why, K)[hit]
     t1 = time.perf_counter()
 
     # IK for both arms on the candidates still alive.
@@ -213,7 +224,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
 
 
 def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float) -> dict:
-    """Stability verdicts and margins of grasp candidates (see the module docstring, step 5).
+    """Stability verdicts and margins of grasp candidates (see the module docstring, step 6).
 
     The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
     placement's resting pose ``X_TO`` turned about the vertical and shifted (checked here to 1e-9), and

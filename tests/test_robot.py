@@ -394,6 +394,26 @@ def test_collision_batch_equals_loop(scene_robot):
     assert empty[0].shape == empty[1].shape == (0,)
 
 
+def test_object_on_the_first_links_axis_blocks_the_arm_at_every_posture(scene_robot):
+    """A small box around the left core ball (on the first joint's axis, inside link 1's capsule
+    whatever q): blocked for the left arm, not the right, and every random left posture hits it."""
+    check = make_collision_fn(scene_robot, object_mesh=trimesh.creation.box((0.04, 0.04, 0.04)))
+    ids, centres, radii = check.cores[0]
+    assert len(ids) == 1 and radii[0] > 0.04
+    X_in = se3.make_transform(np.eye(3), centres[0])
+    X_away = se3.make_transform(np.eye(3), centres[0] + [0.6, 0.0, 0.0])
+    blocked, why = check.object_blocks_arm(np.stack([X_in, X_away]))
+    assert blocked.tolist() == [[True, False], [False, False]]
+    assert why.tolist() == [f"env_collision:{scene_robot.arms['left'].cap_names[ids[0]]}/object", "ok"]
+    arm = scene_robot.arms["left"]
+    rng = np.random.default_rng(5)
+    ql = rng.uniform(arm.lower, arm.upper, (200, arm.dof))
+    qr = np.broadcast_to(scene_robot.arms["right"].q_rest, (200, arm.dof))
+    ok, _, blame = check(ql, qr, np.broadcast_to(X_in, (200, 4, 4)), np.ones((200, 2), bool), blame=True)
+    assert not ok.any()
+    assert blame[:, 0].all()  # the left arm is always involved
+
+
 def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl():
     """The hull filters (bounding sphere, Cyrus-Beck clipping) and the early exit per row only skip
     work: the first colliding capsule of every row is the one a plain fcl test of all pairs finds."""
