@@ -877,6 +877,8 @@ class _Mesh:
     fcl_obj: object  # fcl.CollisionObject at the identity
     centre: np.ndarray  # (3,) bounding-sphere centre
     radius: float  # bounding-sphere radius
+    lo: np.ndarray  # (3,) axis-aligned bounding box
+    hi: np.ndarray  # (3,)
     planes: np.ndarray  # (F, 4) convex-hull face planes n . x <= d, unit n
     convex: bool  # the mesh is its own convex hull
     mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
@@ -907,8 +909,8 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
     convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
     return _Mesh(fcl_obj=fcl.CollisionObject(bvh, fcl.Transform()), centre=centre,
-                 radius=float(np.linalg.norm(v - centre, axis=1).max()), planes=planes, convex=convex,
-                 mesh=mesh)
+                 radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo, hi=hi, planes=planes,
+                 convex=convex, mesh=mesh)
 
 
 def _capsules_W(a: Arm, qT: np.ndarray):
@@ -1283,9 +1285,10 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
                margin: float, test: np.ndarray):
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
 
-    Only ``test (C, m)`` pairs are examined. Two numpy filters run before python-fcl: the mesh's
-    bounding sphere, then separation from its convex hull: the capsule's segment, clipped by every hull
-    face plane pushed out by the capsule radius (Cyrus–Beck), is empty. What remains goes to
+    Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
+    sphere, its bounding box (in the mesh frame, grown by the capsule radius), then separation from its
+    convex hull: the capsule's segment, clipped by every hull face plane pushed out by the capsule
+    radius (Cyrus–Beck), is empty. What remains goes to
     ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row already
     hit by a lower capsule is not tested again. A capsule with no triangle contact can still lie
     wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
@@ -1304,10 +1307,12 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     c, k = np.nonzero(cand)
     if not len(c):
         return k, c
-    # The candidates' endpoints in the mesh frame.
+    # The candidates' endpoints in the mesh frame, then the bounding box.
     a = np.einsum("kij,jk->ik", R[k], A[:, c, k]) + t[k].T
     b = np.einsum("kij,jk->ik", R[k], B[:, c, k]) + t[k].T
     rc = rr[c]
+    near = np.all((np.minimum(a, b) <= msh.hi[:, None] + rc) & (np.maximum(a, b) >= msh.lo[:, None] - rc), axis=0)
+    c, k, a, b, rc = c[near], k[near], np.ascontiguousarray(a[:, near]), np.ascontiguousarray(b[:, near]), rc[near]
     n, d = msh.planes[:, :3], msh.planes[:, 3]
     sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
     # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
