@@ -614,6 +614,7 @@ def _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frame
     ``eef_frames (N, e, 3, 3)``: columns n, t1, t2 of each EEF contact, W.
     """
     N, k = table_mask.shape
+    e = eef_mask.shape[1]
     p = params
     kact = table_mask.sum(1)
     eact = eef_mask.sum(1)
@@ -651,6 +652,30 @@ def _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frame
                             eef_mask, p.mu_eef, p.n_sides, p.f_max)
         reach = np.linalg.norm(com_W - a, axis=1) + 1.0
         unstable |= check & ((need < lo - slack * reach) | (need > hi + slack * reach))
+    if k >= 3 and e:
+        # Coplanar table points all on one side of a line through two of them (an edge of their
+        # hull): about that line the table's forces have a moment of one sign only (friction lies in
+        # the table plane, which holds the line; the normal forces push up on one side), so the EEF
+        # moments must make up at least the rest of gravity's.
+        i, j = np.triu_indices(k, 1)
+        a, b = table_pts_W[:, i], table_pts_W[:, j]                       # (N, P, 3)
+        u = b - a
+        ln = np.linalg.norm(u, axis=2)
+        u = u / np.maximum(ln, tol.zero)[..., None]
+        v = np.cross(_EZ, u)                                               # horizontal, across the line
+        side = np.einsum("npa,nqa->npq", v, table_pts_W) - np.einsum("npa,npa->np", v, a)[..., None]
+        others = table_mask[:, None, :] & (np.arange(k) != i[:, None]) & (np.arange(k) != j[:, None])
+        below = np.all(~others | (side <= 0.0), axis=2)
+        above = np.all(~others | (side >= 0.0), axis=2)
+        # Orient the axis so that the table's moment about it is <= 0 (its points on the -v side).
+        u = np.where(above[..., None], -u, u)
+        live = (flat & (kact >= 3))[:, None] & table_mask[:, i] & table_mask[:, j] & (ln > tol.merge) & (below | above)
+        m_g = np.einsum("npa,npa->np", np.cross(com_W[:, None, :] - a, -W[:, None, None] * _EZ), u)
+        _, hi = _eef_range(np.cross(u[:, :, None, :], eef_pts_W[:, None] - a[:, :, None, :]).reshape(N * len(i), e, 3),
+                           np.repeat(eef_frames, len(i), axis=0), np.repeat(eef_mask, len(i), axis=0), p.mu_eef,
+                           p.n_sides, p.f_max)
+        reach = np.linalg.norm(com_W[:, None, :] - a, axis=2) + 1.0
+        unstable |= np.any(live & (hi.reshape(N, len(i)) < -m_g - slack[:, None] * reach), axis=1)
     return stable & ~unstable, unstable
 
 

@@ -372,6 +372,14 @@ def test_prefilters_agree_with_the_lp(monkeypatch):
     import stages.stability as st
     rng = np.random.default_rng(3)
     scenes = [(random_scenes(rng, 80, k, e), Params(f_max=f)) for k, e in CASES for f in (8.0, 20.0, 60.0)]
+    # USP-like: the CoM beyond the table points (their disc has radius 0.2 m), held by one or two EEFs.
+    for k, e in [(3, 1), (5, 1), (4, 2)]:
+        for f in (8.0, 20.0, 60.0):
+            kw = random_scenes(rng, 80, k, e)
+            shift = np.array([0.22, 0.0, 0.0])
+            kw["com_W"] = kw["com_W"] + shift
+            kw["eef_pts_W"] = kw["eef_pts_W"] + shift
+            scenes.append((kw, Params(f_max=f)))
     ref = [evaluate(**kw, params=p, compute_margin=False) for kw, p in scenes]
     monkeypatch.setattr(st, "_prefilter", lambda W, com, *a: (np.zeros(len(com), bool),) * 2)
     lp = [evaluate(**kw, params=p, compute_margin=False) for kw, p in scenes]
