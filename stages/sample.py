@@ -46,7 +46,7 @@ from stages import artifacts, poses, se3, stability
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
-from stages.robot import load_robot, make_collision_fn
+from stages.robot import IKParams, load_robot, make_collision_fn
 from stages.scene import PlacementSpec, Scene, load_scene
 
 
@@ -68,6 +68,9 @@ class Params:
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
+    #: Worker threads for IK, collision checks and stability LPs (numpy releases the GIL in its
+    #: kernels); every candidate's result is the same for any number.
+    threads: int = 2
 
 
 @dataclass(frozen=True)
@@ -91,14 +94,14 @@ def placement_pose(spec: PlacementSpec, model: poses.ObjectModel, where: str) ->
     return X, g
 
 
-def make_scene_collision_fn(scene: Scene, robot, object_mesh):
+def make_scene_collision_fn(scene: Scene, robot, object_mesh, threads: int = 1):
     """The robot's batched collision checker against the scene's table, obstacles and the object."""
     obstacles = []
     for ob in scene.obstacle_geometries():
         dims = {"box": ob.size, "cylinder": (ob.radius, ob.height), "mesh": (ob.vertices, ob.faces)}[ob.kind]
         obstacles.append((ob.kind, dims, ob.X_WOb, ob.name))
     return make_collision_fn(robot, (tuple(scene.table.size), 0.0), obstacles, object_mesh,
-                             table_depth=scene.table.height)
+                             table_depth=scene.table.height, threads=threads)
 
 
 def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: poses.PoseSet, robot, collide,
@@ -193,7 +196,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     # Stability.
     live = np.flatnonzero(reason == "")
     margins = _stability(scene, model, tables, ps, pose_idx[live], pair_idx[live], X[live], p_l[live], p_r[live],
-                         n_l[live], n_r[live], params.corner_cluster)
+                         n_l[live], n_r[live], params.corner_cluster, params.threads)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -223,7 +226,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     return grasps, rejects, timings
 
 
-def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float) -> dict:
+def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float,
+               threads: int = 1) -> dict:
     """Stability verdicts and margins of grasp candidates (see the module docstring, step 6).
 
     The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
@@ -236,6 +240,10 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     N = len(X)
     mass = scene.object.mass
     L = float(np.linalg.norm(tables["summary"]["extents"]) / 2)
+
+    def evaluate(*args, **kwargs):  # the candidates in slices, one per thread
+        return stability.evaluate_threaded(*args, **kwargs, threads=threads, min_rows=256)
+
     prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
                            f_max=scene.robot.max_eef_force)
     corners = poses.pivot_corners(model, corner_cluster)
@@ -272,8 +280,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     need = np.zeros((C, kmax), bool)
     np.logical_or.at(need, cls, on)
     rows, cols = np.nonzero(need)
-    res = stability.evaluate(mass, com_c[rows], V_c[rows, cols][:, None], None, eef_p[rows], eef_n[rows], None, L,
-                             prm, compute_margin=False)
+    res = evaluate(mass, com_c[rows], V_c[rows, cols][:, None], None, eef_p[rows], eef_n[rows], None, L, prm,
+                   compute_margin=False)
     holds_c = np.zeros((C, kmax), bool)
     holds_c[rows, cols] = res.stable
     holds = on & holds_c[cls]                                                      # (N, kmax)
@@ -282,8 +290,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     out["pivot_vertices"] = [ids[i][holds[i]] for i in range(N)]
     # Margins cost twelve LPs each: measure them on one pivot corner per grasp, the first that holds.
     mk, minv = np.unique(np.stack([cls[has], first[has]], axis=1), axis=0, return_inverse=True)
-    m = stability.evaluate(mass, com_c[mk[:, 0]], V_c[mk[:, 0], mk[:, 1]][:, None], None, eef_p[mk[:, 0]],
-                           eef_n[mk[:, 0]], None, L, prm, R_WD=X_c[mk[:, 0], :3, :3])
+    m = evaluate(mass, com_c[mk[:, 0]], V_c[mk[:, 0], mk[:, 1]][:, None], None, eef_p[mk[:, 0]], eef_n[mk[:, 0]],
+                 None, L, prm, R_WD=X_c[mk[:, 0], :3, :3])
     out["margin"][has] = m.margin[minv.reshape(-1)]
     out["stable"] = has & ~usp
     # USP: the object on the table's edge (its support face clipped to the table top) with both balls,
@@ -304,13 +312,13 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
             V[k, :len(poly), :2] = poly
             mask[k, :len(poly)] = True
         R = X[us, :3, :3]
-        both = stability.evaluate_threaded(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=R)
+        both = evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=R)
         out["stable"][us] = both.stable
         out["margin"][us] = both.margin  # holding, not pivoting, is what a USP grasp must do first
         for j, key in ((0, "hold_left"), (1, "hold_right")):
             em = np.zeros((len(us), 2), bool)
             em[:, j] = True
-            one = stability.evaluate_threaded(mass, com[us], V, mask, eef_p[us], eef_n[us], em, L, prm, R_WD=R)
+            one = evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], em, L, prm, R_WD=R)
             out[key][us] = np.where(one.stable, one.margin, -1.0)
     return out
 
@@ -347,11 +355,15 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     if ps.status[0] != "ok":
         raise InputError(f"{scene.path}: start: the start pose is {ps.status[0]} (placement {g0})")
     t1 = time.perf_counter()
-    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    collide = make_scene_collision_fn(scene, robot, tables["mesh"])
+    # Robot set-up, before the refinement: self-collision pairs and IK seed libraries.
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links),
+                       ik_params=IKParams(threads=params.threads, min_chunk=1024))
+    collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads)
+    robot.prepare_ik()
+    t2 = time.perf_counter()
     rng = np.random.default_rng(pl.seed)
     grasps, rejects, timings = refine_grasps(scene, model, tables, ps, robot, collide, params, rng)
-    timings.update(poses=t1 - t0, total=time.perf_counter() - t0)
+    timings.update(poses=t1 - t0, robot_setup=t2 - t1, total=time.perf_counter() - t0)
     reasons, counts = np.unique(rejects["reason"], return_counts=True)
     summary = {
         "poses": {s: int((ps.status == s).sum()) for s in ("ok", "off_table", "unstable", "obstacle")},
@@ -374,7 +386,8 @@ def run(scene_path: str | Path, analysis_dir: str | Path, out_dir: str | Path, p
     scene = load_scene(scene_path)
     result = compute(scene, analysis_dir, params)
     out = Path(out_dir)
-    meta_params = {**asdict(params), "scene": scene.to_dict()}
+    # Threads change how fast, not what: left out so that the artifacts do not depend on them.
+    meta_params = {**{k: v for k, v in asdict(params).items() if k != "threads"}, "scene": scene.to_dict()}
     inputs = {"scene": scene_path, **{n: Path(analysis_dir) / f"{n}.parquet" for n in ("hull", "placements",
                                                                                        "contacts", "pairs")}}
     ps = result.poses

@@ -394,6 +394,22 @@ def test_collision_batch_equals_loop(scene_robot):
     assert empty[0].shape == empty[1].shape == (0,)
 
 
+def test_threaded_collision_check_equals_the_serial_one(scene_robot):
+    rng = np.random.default_rng(9)
+    arm = scene_robot.arms["left"]
+    n = 2100  # two slices of at least 1024 rows
+    ql = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    qr = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    X_WO = np.broadcast_to(se3.make_transform(np.eye(3), [0.1, 0.0, 0.2]), (n, 4, 4))
+    touch = rng.random((n, 2)) < 0.5
+    kw = dict(table=TABLE, object_mesh=trimesh.creation.box((0.3, 0.4, 0.4)))
+    one = make_collision_fn(scene_robot, **kw)(ql, qr, X_WO, touch, blame=True)
+    two = make_collision_fn(scene_robot, **kw, threads=2)(ql, qr, X_WO, touch, blame=True)
+    assert 0 < one[0].sum() < n
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_object_on_the_first_links_axis_blocks_the_arm_at_every_posture(scene_robot):
     """A small box around the left core ball (on the first joint's axis, inside link 1's capsule
     whatever q): blocked for the left arm, not the right, and every random left posture hits it."""
