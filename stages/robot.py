@@ -1309,33 +1309,33 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
 
     Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
-    sphere, its bounding box (in the mesh frame, grown by the capsule radius), then separation from its
-    convex hull: the capsule's segment, clipped by every hull face plane pushed out by the capsule
-    radius (Cyrus–Beck), is empty. What remains goes to
-    ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row already
-    hit by a lower capsule is not tested again. A capsule with no triangle contact can still lie
-    wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
-    mesh, trimesh's ray test otherwise). Returns hits as ``(row, capsule)`` index arrays, ordered by
-    capsule then row, which include each hit row's lowest colliding capsule (not necessarily every
-    capsule that collides with it).
+    box (in the mesh frame, grown by the capsule radius), then separation from its convex hull: the
+    capsule's segment, clipped by every hull face plane pushed out by the capsule radius
+    (Cyrus–Beck), is empty. What remains goes to ``fcl.collide`` (capsule inflated by the margin),
+    capsule by capsule in index order; a row already hit by a lower capsule is not tested again. A
+    capsule with no triangle contact can still lie wholly inside the mesh, so one of its points is
+    tested for inclusion (hull planes for a convex mesh, trimesh's ray test otherwise). Returns hits
+    as ``(row, capsule)`` index arrays, ordered by capsule then row, which include each hit row's
+    lowest colliding capsule (not necessarily every capsule that collides with it).
     """
     import fcl
 
-    # Bounding spheres in the world: the mesh's centre is moved into W, not every capsule into O.
+    # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
+    # mesh's bounding box grown by the capsule radius.
     R, t = X_OW[:, :3, :3], X_OW[:, :3, 3]
-    centre_W = np.einsum("mji,mj->im", R, msh.centre - t)  # X_WO applied to the centre, (3, m)
     rr = radius + margin
-    rho = np.linalg.norm(B - A, axis=0) / 2 + rr[:, None]
-    cand = test & (np.linalg.norm((A + B) / 2 - centre_W[:, None, :], axis=0) <= rho + msh.radius)
-    c, k = np.nonzero(cand)
+
+    def to_mesh(P):
+        return np.stack([R[:, i, 0] * P[0] + R[:, i, 1] * P[1] + R[:, i, 2] * P[2] + t[:, i] for i in range(3)])
+
+    Ao, Bo = to_mesh(A), to_mesh(B)
+    grow = rr[:, None]
+    near = test & np.all((np.minimum(Ao, Bo) <= msh.hi[:, None, None] + grow)
+                         & (np.maximum(Ao, Bo) >= msh.lo[:, None, None] - grow), axis=0)
+    c, k = np.nonzero(near)
     if not len(c):
         return k, c
-    # The candidates' endpoints in the mesh frame, then the bounding box.
-    a = np.einsum("kij,jk->ik", R[k], A[:, c, k]) + t[k].T
-    b = np.einsum("kij,jk->ik", R[k], B[:, c, k]) + t[k].T
-    rc = rr[c]
-    near = np.all((np.minimum(a, b) <= msh.hi[:, None] + rc) & (np.maximum(a, b) >= msh.lo[:, None] - rc), axis=0)
-    c, k, a, b, rc = c[near], k[near], np.ascontiguousarray(a[:, near]), np.ascontiguousarray(b[:, near]), rc[near]
+    a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
     n, d = msh.planes[:, :3], msh.planes[:, 3]
     sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
     # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
