@@ -378,13 +378,9 @@ class Robot:
         reach = np.linalg.norm(p_W - a.reach_centre, axis=1) <= a.reach_radius
         idx = np.flatnonzero(reach)
         if len(idx):
-            q_lib, cost_lib, tree = self._library(arm)
-            k = min(prm.neighbours, len(q_lib))
-            d, nn = tree.query(p_W[idx], k=k, workers=prm.threads)
-            d, nn = d.reshape(len(idx), k), nn.reshape(len(idx), k)
-            # Rank each target's neighbours: within seed_slack of the nearest first, then by comfort.
-            cost = cost_lib[nn] + np.where(d > d[:, :1] + prm.seed_slack, 1e6, 0.0)
-            ranked = np.take_along_axis(nn, np.argsort(cost, axis=1, kind="stable"), axis=1)
+            q_lib = self._library(arm)[0]
+            # The library neighbours are only needed to seed the first attempt or a restart.
+            ranked = self._ranked_neighbours(arm, p_W[idx]) if q_seed is None or restarts > 0 else None
             seed = q_seed[idx] if q_seed is not None else q_lib[ranked[:, 0]]
             first = 0 if q_seed is not None else 1
             q[idx], err[idx] = self._solve_parallel(a, p_W[idx], seed, tol)
@@ -393,6 +389,7 @@ class Robot:
                 if not still.any():
                     break
                 sub = idx[still]
+                k = ranked.shape[1]
                 seed = np.clip(q_lib[ranked[still, (first + r) % k]] + jitter[r], a.lower, a.upper)
                 q_r, err_r = self._solve_parallel(a, p_W[sub], seed, tol)
                 better = err_r < err[sub]
@@ -437,6 +434,29 @@ class Robot:
         if single:
             res = IKResult(q=res.q[:, 0], ok=res.ok[:, 0], reason=res.reason[:, 0], err=res.err[:, 0])
         return res
+
+    def library_seeds(self, arm: str, p_W: np.ndarray, rank: int) -> np.ndarray:
+        """Seed-library postures ``(N, n)`` for the targets ``p_W (N, 3)``: the entry of rank ``rank``
+        among each target's library neighbours, ranked as ``ik`` ranks them (within ``seed_slack`` of
+        the nearest first, then by comfort). Rank 0 seeds ``ik``'s first attempt, ranks 1, 2, ... its
+        restarts; ranks wrap around after ``IKParams.neighbours``."""
+        a = self.arm(arm)
+        p_W = _check_points(p_W)
+        if len(p_W) == 0:
+            return np.zeros((0, a.dof))
+        ranked = self._ranked_neighbours(arm, p_W)
+        return self._library(arm)[0][ranked[:, rank % ranked.shape[1]]]
+
+    def _ranked_neighbours(self, arm: str, p_W: np.ndarray) -> np.ndarray:
+        """Library indices ``(N, k)`` of each target's ``k = IKParams.neighbours`` nearest entries (by
+        ball position): those within ``seed_slack`` of the nearest first, then by comfort."""
+        prm = self.ik_params
+        q_lib, cost_lib, tree = self._library(arm)
+        k = min(prm.neighbours, len(q_lib))
+        d, nn = tree.query(p_W, k=k, workers=prm.threads)
+        d, nn = d.reshape(len(p_W), k), nn.reshape(len(p_W), k)
+        cost = cost_lib[nn] + np.where(d > d[:, :1] + prm.seed_slack, 1e6, 0.0)
+        return np.take_along_axis(nn, np.argsort(cost, axis=1, kind="stable"), axis=1)
 
     def prepare_ik(self) -> None:
         """Build the IK seed libraries of both arms now rather than at the first ``ik`` call (a setup
