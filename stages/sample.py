@@ -21,8 +21,8 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    every candidate of the pose collides whatever its IK (one test per pose);
 4. ``ik_unreachable`` / ``joint_limit``: batched position IK of each ball centre (``stages.robot``);
 5. ``env_collision:*`` / ``self_collision:*``: the arms against the table, obstacles, object and
-   each other; a colliding candidate gets new IK solutions, for the arms the colliding pair
-   involves, up to ``collision_retries`` times;
+   each other; a colliding candidate gets new IK solutions (from other library postures near its
+   target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
    the on-table support vertices and both balls must hold it. The margins recorded are, in SP, the
@@ -63,8 +63,12 @@ class Params:
     #: IK tolerance (m) and restarts.
     ik_tol: float = 1e-3
     ik_restarts: int = 2
-    #: New IK solutions tried for a candidate whose first solution collides.
-    collision_retries: int = 3
+    #: New IK solutions tried for a candidate whose first solution collides, each from the next
+    #: seed-library posture near its target (after those of the IK restarts) jittered by
+    #: ``retry_jitter`` (rad, std). One round recovers about as many candidates on the default scene
+    #: as three rounds from random postures around the rest posture did (7138 vs 7239 grasps).
+    collision_retries: int = 1
+    retry_jitter: float = 0.3
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
@@ -165,23 +169,23 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     t2 = time.perf_counter()
 
     # Collisions of the arms with the table, obstacles, the object and each other. The IK knows
-    # nothing of obstacles, so a colliding candidate gets a few more IK solutions from random seeds
-    # around the rest posture (collision-aware IK by retry) before it is refused. Only the arms that
-    # the colliding pair involves are solved again (the other keeps its solution), and only the rows
-    # that got a new solution are checked again: the check of a row depends on its joints alone.
+    # nothing of obstacles, so a colliding candidate gets more IK solutions, from other comfortable
+    # library postures near its target (collision-aware IK by retry), before it is refused. Only the
+    # arms that the colliding pair involves are solved again (the other keeps its solution), and only
+    # the rows that got a new solution are checked again: the check of a row depends on its joints.
     cand = np.flatnonzero(reason == "")
     touching = np.ones((len(cand), 2), bool)
     ok, why, blame = collide(q_l[cand], q_r[cand], X[cand], touching, blame=True)
     failed, why, blame = cand[~ok], why[~ok].astype(object), blame[~ok]
-    for _ in range(params.collision_retries):
+    for attempt in range(params.collision_retries):
         if len(failed) == 0:
             break
         moved = np.zeros(len(failed), bool)
         for s, (arm, ball, q) in enumerate((("left", ball_l, q_l), ("right", ball_r, q_r))):
             a = robot.arm(arm)
             redo = np.flatnonzero(blame[:, s])
-            seed = np.clip(a.q_rest + rng.normal(0.0, 0.35, (len(redo), a.dof)) * (a.upper - a.lower),
-                           a.lower, a.upper)
+            seed = robot.library_seeds(arm, ball[failed[redo]], 1 + params.ik_restarts + attempt)
+            seed = np.clip(seed + rng.normal(0.0, params.retry_jitter, seed.shape), a.lower, a.upper)
             res = robot.ik(arm, ball[failed[redo]], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
             q[failed[redo[res.ok]]] = res.q[res.ok]
             moved[redo[res.ok]] = True
