@@ -315,15 +315,21 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
             poly = polys[int(pose_id[i])]
             V[k, :len(poly), :2] = poly
             mask[k, :len(poly)] = True
-        R = X[us, :3, :3]
-        both = evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], None, L, prm, R_WD=R)
-        out["stable"][us] = both.stable
-        out["margin"][us] = both.margin  # holding, not pivoting, is what a USP grasp must do first
-        for j, key in ((0, "hold_left"), (1, "hold_right")):
-            em = np.zeros((len(us), 2), bool)
-            em[:, j] = True
-            one = evaluate(mass, com[us], V, mask, eef_p[us], eef_n[us], em, L, prm, R_WD=R)
-            out[key][us] = np.where(one.stable, one.margin, -1.0)
+        # Both balls, the left alone, the right alone: one batch of three copies of the candidates.
+        n = len(us)
+        em = np.ones((3, n, 2), bool)
+        em[1, :, 1] = em[2, :, 0] = False
+
+        def three(a):
+            return np.concatenate([a, a, a])
+
+        res = evaluate(mass, three(com[us]), three(V), three(mask), three(eef_p[us]), three(eef_n[us]),
+                       em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]))
+        stable, margin = res.stable.reshape(3, n), res.margin.reshape(3, n)
+        out["stable"][us] = stable[0]
+        out["margin"][us] = margin[0]  # holding, not pivoting, is what a USP grasp must do first
+        out["hold_left"][us] = np.where(stable[1], margin[1], -1.0)
+        out["hold_right"][us] = np.where(stable[2], margin[2], -1.0)
     return out
 
 
