@@ -73,8 +73,10 @@ class Params:
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
     #: Worker threads for IK, collision checks and stability LPs (numpy releases the GIL in its
-    #: kernels); every candidate's result is the same for any number.
-    threads: int = 2
+    #: kernels); every candidate's result is the same for any number. On the project's 2-core VM two
+    #: threads made the collision checks ~8 % faster but IK and the stability LPs 15-20 % slower
+    #: (their arrays are small, so the threads mostly wait for the GIL), hence 1.
+    threads: int = 1
 
 
 @dataclass(frozen=True)
