@@ -41,7 +41,8 @@ def execute(
                         producer=f"execute {scene}")
     m = res.metrics
     info(f"{scene.stem}: success {m['success']}: final error {100 * m['final_position_error']:.2f} cm / "
-         f"{m['final_yaw_error_deg']:.2f}°, max pivot slip {1000 * m['max_pivot_slip']:.1f} mm, fell {m['fell']}, "
+         f"{m['final_yaw_error_deg']:.2f}°, max pivot slip {1000 * m['max_pivot_slip']:.1f} mm, edge slip "
+         f"{1000 * m['max_edge_slip']:.1f} mm, fell {m['fell']}, "
          f"collision {m['collision']}; {res.timings.get('sim_speed', 0):.0f}x real time -> {out}/execution.json")
     if not m["success"]:
         raise typer.Exit(code=1)

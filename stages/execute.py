@@ -89,11 +89,12 @@ planned position, which includes the squeeze and the rolling shift); ``joint_err
 over both arms); ``penetration`` (m, deepest contact of the object); ``torque_saturated``; and the
 measured joints ``q_left``/``q_right`` ``(T, n)``. The support vertex of a stretch of rows with the
 same ``primitive`` and ``kind`` is the hull vertex that the plan keeps most nearly fixed on the table
-(the pivot vertex of a pivot, an edge end of a tumble); its slip is its horizontal displacement since
-the stretch began. Collisions (robot-table, robot-obstacle, robot-object other than the balls,
-object-obstacle) are checked at every physics step. Metrics are deterministic (same inputs and seed
-give the same numbers, also across processes); wall-clock figures live in ``Execution.timings`` and
-must stay out of artifacts.
+(the pivot vertex of a pivot, an end of a tumble's edge); its slip is its horizontal displacement since
+the stretch began. A tumble turns about an edge, so its ``pivot_slip`` is the edge's: the larger
+slip of the edge's two ends (``pivot_x/y/z`` stay the first end). Collisions (robot-table,
+robot-obstacle, robot-object other than the balls, object-obstacle) are checked at every physics step.
+Metrics are deterministic (same inputs and seed give the same numbers, also across processes);
+wall-clock figures live in ``Execution.timings`` and must stay out of artifacts.
 
 The convex-decomposition cache is the only file this module writes: a build product keyed by
 content, not an artifact.
@@ -185,6 +186,8 @@ class Params:
         time). The Jacobian, gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
+    fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
+        the plan's overhanging one (USP).
     success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``.
     seed : seed of the perturbations (``randomize``).
     randomize : perturb friction by +-friction_jitter (relative), the CoM by +-com_jitter (m per
@@ -214,6 +217,7 @@ class Params:
     model_period: int = 4
     object_margin: float = 1e-4
     fall_tilt_deg: float = 30.0
+    fall_distance: float = 0.05
     success_pos: float = 0.01
     success_yaw_deg: float = 2.0
     seed: int = 0
@@ -596,21 +600,30 @@ def _rotation_targets(t, X_WO, R_plan, contact, unwind_time) -> np.ndarray:
     return R_tgt
 
 
-def _support_vertices(plan: Plan, hull_O: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per row the support vertex index into ``hull_O`` and the row where its stretch began.
+def _support_vertices(plan: Plan, hull_O: np.ndarray, edge_tol: float = 2e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Per row the support vertices ``(T, 2)`` (indices into ``hull_O``) and the row where their stretch
+    began.
 
-    A stretch is a run of rows with the same primitive and kind; its vertex is the hull vertex the
-    plan keeps most nearly fixed on the table (largest horizontal travel plus largest height).
+    A stretch is a run of rows with the same primitive and kind; its first vertex is the hull vertex
+    the plan keeps most nearly fixed on the table (largest horizontal travel plus largest height):
+    the pivot vertex of a pivot. A tumble turns about an edge: its second vertex is the one farthest
+    from the first among those the plan keeps within ``edge_tol`` (m) as still, the edge's other end;
+    elsewhere the second is the first.
     """
     T = len(plan.t)
     key = np.array([f"{p}|{k}" for p, k in zip(plan.primitive.tolist(), plan.kind.tolist(), strict=True)])
     change = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
-    vertex, start = np.zeros(T, dtype=int), np.zeros(T, dtype=int)
+    vertex, start = np.zeros((T, 2), dtype=int), np.zeros(T, dtype=int)
     for s, e in zip(change.tolist(), np.concatenate([change[1:], [T]]).tolist(), strict=True):
         P = se3.transform_points(plan.X_WO[s:e, None], hull_O[None])  # (n, H, 3)
         travel = np.linalg.norm(P[:, :, :2] - P[:1, :, :2], axis=2).max(axis=0)
         score = travel + np.abs(P[:, :, 2]).max(axis=0)
-        vertex[s:e], start[s:e] = int(np.argmin(score)), s
+        v = int(np.argmin(score))
+        w = v
+        if plan.kind[s] == "tumble":
+            still = np.flatnonzero(score <= score[v] + edge_tol)
+            w = int(still[np.argmax(np.linalg.norm(hull_O[still] - hull_O[v], axis=1))])
+        vertex[s:e], start[s:e] = (v, w), s
     return vertex, start
 
 
@@ -839,7 +852,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     ``final_yaw_error_deg`` to ``X_WO_goal``; the same to the plan's last pose,
     ``final_plan_position_error`` and ``final_plan_yaw_error_deg`` (the physics alone, when a partial
     plan stops short of the goal); ``max_com_deviation`` (m) and ``max_rotation_deviation_deg``
-    from the planned object path; ``max_pivot_slip`` (m, over pivot and tumble rows);
+    from the planned object path; ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
+    the support edge over tumble rows);
     ``max_penetration`` (m); ``max_ball_force`` (N); ``max_joint_error`` (rad); ``fell`` and
     ``fell_reason``; ``robot_table_contacts``, ``robot_obstacle_contacts``, ``robot_object_contacts``
     (links other than the balls), ``object_obstacle_contacts`` (sorted names); ``collision``;
@@ -1123,9 +1137,12 @@ def _make_log(plan: Plan, raw: dict, X_PO, com_O, hull_O, sup_vertex, sup_start)
     up, up_plan = X[:, 2, :3], Xp[:, 2, :3]  # world z in O: the object's view of "up"
     log["tilt_error"] = np.arccos(np.clip(np.sum(up * up_plan, axis=1), -1.0, 1.0))
     H = se3.transform_points(X[:, None], hull_O[None])  # (T, n, 3)
-    v = H[np.arange(len(X)), sup_vertex]
+    rows = np.arange(len(X))
+    v = H[rows, sup_vertex[:, 0]]
     log["pivot_x"], log["pivot_y"], log["pivot_z"] = v[:, 0].copy(), v[:, 1].copy(), v[:, 2].copy()
-    log["pivot_slip"] = np.linalg.norm(v[:, :2] - v[sup_start, :2], axis=1)
+    slip = [np.linalg.norm(H[rows, sup_vertex[:, i], :2] - H[sup_start, sup_vertex[:, i], :2], axis=1)
+            for i in range(2)]
+    log["pivot_slip"] = np.maximum(*slip)
     log["lowest_z"] = H[:, :, 2].min(axis=1)
     log["left_force"], log["right_force"] = raw["f_ball"][:, 0].copy(), raw["f_ball"][:, 1].copy()
     log["left_touch"], log["right_touch"] = raw["touch"][:, 0].copy(), raw["touch"][:, 1].copy()
@@ -1159,13 +1176,17 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
     X_all = se3.matrix_from_columns({c: log[c] for c in se3.POSE_COLUMNS})
     com_all = se3.transform_points(X_all, com_O)
     tilt = float(np.degrees(log["tilt_error"].max()))
-    off_table = ~scene.on_table(com_all) | (com_all[:, 2] < 0.0)
+    # Off the table: the CoM beyond its edge where the plan's is not (in USP the plan itself holds it
+    # overhanging, held by a ball: then only when it is also fall_distance from the plan's), or below it.
+    com_plan = se3.transform_points(plan.X_WO, com_O)
+    off_table = (~scene.on_table(com_all) & (scene.on_table(com_plan) | (log["com_error"] > params.fall_distance))) \
+        | (com_all[:, 2] < 0.0)
     fell_reason = ""
     if tilt > params.fall_tilt_deg:
         fell_reason = f"tilted {tilt:.1f} deg from the plan"
     elif off_table.any():
         fell_reason = f"left the table at t = {plan.t[np.argmax(off_table)]:.3f} s"
-    moving = np.isin(plan.kind, ("pivot", "tumble"))
+    pivot, tumble = plan.kind == "pivot", plan.kind == "tumble"
     c_plan = se3.transform_points(plan.X_WO[-1], com_O)
     yaw_plan = float(se3.yaw_of(X_end[:3, :3] @ plan.X_WO[-1, :3, :3].T))
     out = {
@@ -1176,7 +1197,8 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
         "max_com_deviation": float(log["com_error"].max()),
         "max_rotation_deviation_deg": float(np.degrees(log["rot_error"].max())),
         "max_tilt_deviation_deg": tilt,
-        "max_pivot_slip": float(log["pivot_slip"][moving].max()) if moving.any() else 0.0,
+        "max_pivot_slip": float(log["pivot_slip"][pivot].max()) if pivot.any() else 0.0,
+        "max_edge_slip": float(log["pivot_slip"][tumble].max()) if tumble.any() else 0.0,
         "max_penetration": float(log["penetration"].max()),
         "max_ball_force": float(max(log["left_force"].max(), log["right_force"].max())),
         "max_joint_error": float(log["joint_error"].max()),

@@ -13,7 +13,8 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   pivot about vertex v (§5.2.1). Checked along the tilt → rotate → lower motion sampled from
   ``stages.mpc.pivot_reference``: batched IK along the path seeded from the first node (no branch
   flips), the arms free of collision at every sample, and the object in equilibrium on v with the two
-  balls at the largest tilt (the stability LP). Undirected.
+  balls at the largest tilt (the stability LP, with the friction and ball force the plan's MPC may
+  use, ``friction_safety`` and ``force_safety``). Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between two grasps that share one ball's contact, when that ball alone holds the object on its
   table edge (``margin_hold_*`` ≥ 0, §5.2.2): the other ball moves. Undirected. The transit motions
@@ -60,6 +61,11 @@ class Params:
     push_cone: float = np.radians(50.0)
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
+    #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
+    #: (``stages.plan.Params``: 0.8 of the friction, 0.9 of the force bound), so that the search
+    #: does not find pivots its MPC check then refuses.
+    friction_safety: float = 0.8
+    force_safety: float = 0.9
 
 
 @dataclass(frozen=True)
@@ -79,7 +85,8 @@ def _grasp_geometry(tables, grasps, r):
     return p[c], n[c]
 
 
-def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True)):
+def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),
+                     touching=None, batch: bool = False):
     """IK and collisions along object trajectories with both balls on their contacts.
 
     Parameters
@@ -88,11 +95,14 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
     p_O, n_O : (E, 2, 3) contact points and outward normals (O) of the left and right ball.
     q0 : (E, 2, n) joint seeds at the first sample.
     active : which balls follow the object; an inactive arm stays at its seed.
+    touching : which balls may touch the object (default: the active ones).
+    batch : solve the IK of all samples at once first (``Robot.ik_trajectory``; for few long motions).
 
     Returns ``ok (E,)``, ``reason (E,)`` (first failure), ``q (T, E, 2, n)``.
     """
     E, T = X_traj.shape[:2]
     q = np.repeat(q0[None], T, axis=0).copy()
+    touching = active if touching is None else touching
     reason = np.full(E, "ok", dtype=object)
     if E == 0:
         return np.zeros(0, bool), reason.astype(str), q
@@ -101,7 +111,8 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
             continue
         ball_O = p_O[:, k] + ball_radius * n_O[:, k]
         targets = np.einsum("etij,ej->tei", X_traj[..., :3, :3], ball_O) + np.swapaxes(X_traj[..., :3, 3], 0, 1)
-        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step)
+        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step,
+                                  batch=batch)
         q[:, :, k] = res.q
         bad = ~res.ok
         first = np.argmax(bad, axis=0)
@@ -112,8 +123,7 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
         ql = q[:, live, 0].reshape(-1, q.shape[-1])
         qr = q[:, live, 1].reshape(-1, q.shape[-1])
         X = np.swapaxes(X_traj[live], 0, 1).reshape(-1, 4, 4)
-        touching = np.broadcast_to(np.asarray(active, bool), (len(ql), 2))
-        ok, why = collide(ql, qr, X, touching)
+        ok, why = collide(ql, qr, X, np.broadcast_to(np.asarray(touching, bool), (len(ql), 2)))
         ok = ok.reshape(T, len(live))
         why = why.reshape(T, len(live))
         first = np.argmax(~ok, axis=0)
@@ -195,18 +205,18 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             status[i] = "unstable"
     live = np.flatnonzero(status == "ok")
     if len(live):
-        trajs = {}
-        for i in live:  # one reference per candidate (a few dozen samples each)
-            ga, gb, li = cand[i]
+        by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
+        for li in np.unique(cand[live, 2]):
             Xa, Xb = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]]
-            p0 = se3.transform_points(Xa, model.vertices[v[i]])
+            p0 = se3.transform_points(Xa, model.vertices[links["vertex"][li]])
             try:
-                _, trajs[i], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
-                                                     params.check_durations, p_com_O=model.com)
+                _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
+                                                        params.check_durations, p_com_O=model.com)
             except InputError:  # the link is not an exact rotation about that vertex: no pivot edge
-                status[i] = "not_a_pivot"
-        live = np.array([i for i in live if i in trajs], dtype=np.int64)
-        trajs = [trajs[i] for i in live]
+                pass
+        status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
+        live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
+        trajs = [by_link[cand[i, 2]] for i in live]
     if len(live):
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])
@@ -223,8 +233,10 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
             res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
                                      pts, nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                     stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
-                                                      f_max=scene.robot.max_eef_force), compute_margin=False)
+                                     stability.Params(mu_eef=params.friction_safety * scene.object.friction,
+                                                      mu_table=params.friction_safety * scene.table.friction,
+                                                      f_max=params.force_safety * scene.robot.max_eef_force),
+                                     compute_margin=False)
             status[live2[~res.stable]] = "unstable"
     for i, (ga, gb, _) in enumerate(cand):
         edges.append((ga, gb, "pivot", w.pivot, str(status[i]), int(v[i]), -1, -1, "both"))
@@ -297,7 +309,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's side
     of the object, largest lever arm first (``push_candidates`` per arm). Every candidate of every
     tumble is followed for ``push_angle`` of the rotation with IK from a fresh solution and checked
-    for collisions, the other arm at its rest posture, in one batch per arm.
+    for collisions, the other arm at its rest posture (its ball may meet the object: it is the one that
+    catches), in one batch per arm.
 
     Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left
     before right, then by lever arm), or ``(None, reason, None)`` with the most common failure.
@@ -345,7 +358,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
         p_O = np.repeat(pc[c][:, None], 2, axis=1)
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
-        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active)
+        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active,
+                                      touching=(True, True))  # the idle ball may meet the object: it catches
         status[sel] = why
         for i in np.flatnonzero(ok):
             q_path[sel[i]] = q[:, i, j]

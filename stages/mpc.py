@@ -271,6 +271,45 @@ def tumble_reference(X_WO_start, axis_point_W, axis_dir_W, angle: float, dt: flo
     return t, X, np.full(t.shape, "tumble")
 
 
+def roll_poses(X_WO_seg, p_axis_W, a_axis_W, angles, theta) -> np.ndarray:
+    """Poses ``(T, 4, 4)`` along a roll over successive edges (a tumble whose axis switches, §5.2.2).
+
+    A roll is K segments: segment k starts at pose ``X_WO_seg[k]`` and turns by ``angles[k]`` (rad,
+    > 0) right-handedly about the line through ``p_axis_W[k]`` along the unit ``a_axis_W[k]`` (W).
+    ``theta (T,)`` is the cumulative angle from the start of segment 0, clipped to ``[0, sum(angles)]``;
+    a legged body turns about its foot line first and about its body edge once that touches the
+    table (notes: "the rotation axis switches from the foot line to the body edge mid-tumble").
+
+    Parameters
+    ----------
+    X_WO_seg : (K, 4, 4); p_axis_W, a_axis_W : (K, 3); angles : (K,); theta : (T,) rad.
+    """
+    angles = np.asarray(angles, dtype=float)
+    start = np.concatenate([[0.0], np.cumsum(angles)])
+    theta = np.clip(np.asarray(theta, dtype=float), 0.0, start[-1])
+    k = np.clip(np.searchsorted(start, theta, side="right") - 1, 0, len(angles) - 1)
+    X = se3.transform_about_line(np.asarray(p_axis_W)[k], np.asarray(a_axis_W)[k], theta - start[k])
+    return X @ np.asarray(X_WO_seg)[k]
+
+
+def knot_profile(knots, durations, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """A scalar through ``knots (K + 1,)`` with a minimum-jerk move of ``durations (K,)`` s each
+    (a duration may be 0 only between equal knots: a pause), at rest at every knot; sampled every ``dt``.
+
+    Returns ``t (T,)`` and the values ``(T,)``; the last sample falls at or just past the end.
+    """
+    knots = np.asarray(knots, dtype=float)
+    durations = np.asarray(durations, dtype=float)
+    ends = np.concatenate([[0.0], np.cumsum(durations)])
+    t = _sample_times(float(ends[-1]), dt)
+    v = np.full(len(t), knots[-1])
+    for i in range(len(durations)):  # a handful of pieces
+        inside = (t >= ends[i]) & (t < ends[i + 1])
+        s = min_jerk((t[inside] - ends[i]) / durations[i]) if durations[i] > 0 else 0.0
+        v[inside] = knots[i] + (knots[i + 1] - knots[i]) * s
+    return t, v
+
+
 # --------------------------------------------------------------------------------------------
 # Friction pyramids
 # --------------------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ import math
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -238,6 +239,13 @@ class Arm:
     def dof(self) -> int:
         return len(self.joint_names)
 
+    @cached_property
+    def frame_origins(self) -> tuple[tuple[np.ndarray | None, np.ndarray | None], ...]:
+        """Per frame, its origin's translation and rotation, each None when zero or the identity (the
+        forward kinematics skips them)."""
+        return tuple((t if np.any(t != 0.0) else None, None if np.array_equal(A, np.eye(3)) else A)
+                     for t, A in zip(self.origin_t, self.origin_R, strict=True))
+
 
 @dataclass(frozen=True, eq=False)
 class Static:
@@ -403,13 +411,17 @@ class Robot:
         return IKResult(q=q, ok=ok, reason=np.asarray(IK_REASONS)[code], err=err)
 
     def ik_trajectory(self, arm: str, p_W: np.ndarray, q0: np.ndarray, tol: float = 1e-3,
-                      max_joint_step: float = 0.5) -> IKResult:
+                      max_joint_step: float = 0.5, batch: bool = False) -> IKResult:
         """Continuous joint paths through a sequence of targets.
 
         ``p_W (T, 3)`` with ``q0 (n,)``, or ``p_W (T, N, 3)`` with ``q0 (N, n)`` for N paths at once.
         Each step is seeded with the previous step's solution and never restarted, so the path stays
         on one IK branch; a step whose largest joint change exceeds ``max_joint_step`` (rad) is marked
         ``"joint_jump"``. Returns ``IKResult`` with ``q (T, [N,] n)`` and the rest ``(T, [N])``.
+
+        ``batch``: first solve every step at once, each seeded with ``q0`` (one vectorized solve instead
+        of T small ones, for few paths of many steps); kept when every step converges and no step
+        jumps, else the step-by-step solve runs.
         """
         a = self.arm(arm)
         p_W = np.asarray(p_W, dtype=float)
@@ -421,6 +433,14 @@ class Robot:
             raise ValueError(f"p_W must be (T, 3) or (T, N, 3), got {p_W.shape}")
         T, N, n = p_W.shape[0], p_W.shape[1], a.dof
         q_prev = np.clip(_check_q(a, q0, N), a.lower, a.upper)
+        if batch and T:
+            q_b, err_b = _dls(a, _check_points(p_W.reshape(T * N, 3)), np.tile(q_prev, (T, 1)), tol, self.ik_params)
+            q_b, err_b = q_b.reshape(T, N, n), err_b.reshape(T, N)
+            steps = np.abs(np.diff(np.concatenate([q_prev[None], q_b]), axis=0)).max(axis=2)
+            if np.all(err_b <= tol) and np.all(steps <= max_joint_step):
+                res = IKResult(q=q_b, ok=np.ones((T, N), bool), reason=np.full((T, N), IK_REASONS[0]), err=err_b)
+                return IKResult(q=res.q[:, 0], ok=res.ok[:, 0], reason=res.reason[:, 0], err=res.err[:, 0]) \
+                    if single else res
         q = np.zeros((T, N, n))
         err = np.zeros((T, N))
         code = np.zeros((T, N), dtype=int)
@@ -538,12 +558,10 @@ def _fk_frames(a: Arm, qT: np.ndarray, upto: int | None = None, keep_rot: bool =
     cols = [np.broadcast_to(a.X_WR[:3, j, None], (3, m)) for j in range(3)]
     p = np.broadcast_to(a.X_WR[:3, 3, None], (3, m))
     out = []
-    for k in range(len(a.link_names) if upto is None else upto):
-        t = a.origin_t[k]
-        if np.any(t != 0.0):
+    for k, (t, A) in enumerate(a.frame_origins[:upto]):
+        if t is not None:
             p = p + _combine(cols, t)
-        A = a.origin_R[k]
-        if not np.array_equal(A, np.eye(3)):
+        if A is not None:
             cols = [_combine(cols, A[:, j]) for j in range(3)]
         w = None
         j = a.joint[k]

@@ -1,4 +1,4 @@
-"""Stage ``mpc``: a plan's primitives as dense force and joint trajectories (§5.2, eq. 5–11, Fig. 12).
+"""Stage ``mpc``: a plan's primitives as dense force and joint trajectories (§5.2, eq. 5–11, Fig. 12, 14).
 
 Reads ``plan.json`` and writes ``trajectories.parquet``: one row per time step (``Params.mpc.dt``),
 in plan order, with the object's planned pose, both ball centres, both ball forces on the object,
@@ -11,14 +11,60 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   (``stages.mpc.run_pivot_mpc``); the object pose is the MPC's simulated pose, the ball centres
   follow it (``p_i(t) = X_WO(t) p_Oi`` moved out by the ball radius) and batched IK gives the joints
   along the way, seeded step by step (no branch flips);
-- **tumble**: the rotation about the support edge, pushed by one ball for ``push_angle`` with the
-  tumbling MPC (``run_tumble_mpc``, one ball), then the ball lets go and the object lands; the planned
-  pose follows the reference to the new face;
+- **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
+  PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
 - **hold**: a short pause before and after each contact change.
+
+Tumble
+------
+The plan names the pusher, its contact and the hull edge. The object *rolls* over that edge onto the
+next stable face (:func:`roll_segments`): a legged body turns about its foot line until its body edge
+touches the table, then about that edge, so the reference (``stages.mpc.roll_poses``) is piecewise,
+with the motion at rest at every switch. The other arm is the **catcher**: its ball sits on the face
+that lands (the "back" the object falls onto), high up, and both balls follow the rotation:
+
+1. the pusher takes its contact (the plan's transit), the catcher its own (a transit planned here,
+   ``stages.transit.plan_transit``); both contacts switch on together (a squeeze from both sides);
+2. *push*: both rotate the object to the release angle (the plan's ``push_angle`` of
+   ``stages.graph``, at least ``release_past_tip`` past the angle where the CoM crosses the axis);
+3. *release*: the object pauses while the pusher's force ramps out and the catcher takes the load;
+4. *catch*: the catcher alone lowers the object;
+5. the catcher lets go, in one of three ways:
+
+   - *place*: its ball ends beyond the table's edge, so it lowers the object all the way onto the
+     new face, lets go and backs off along the contact normal;
+   - *slide*: its ball would end under the object, so it lowers it to ``slide_short`` before the
+     landing and slides out past the far edge of the face in ``slide_time`` (notes: 84° of 90°,
+     0.1–0.2 s; a slow slide drags the object); the object then drops the rest of the way, planned
+     as a free fall about the current axis (``stages.mpc.integrate_rotation`` with no force);
+   - *hold* (into USP, Fig. 14): the catcher's contact is its contact of the destination grasp (the
+     plan's ``{catcher}_before`` transit ends there); it lowers the object into the USP pose and keeps
+     holding it while the pusher takes its own contact of that grasp (the plan's ``{pusher}_after``).
+
+The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
+normal within ``catch_cone`` of the landing direction), largest lever arm about the axis first (less
+the offset from the CoM along the axis), the first whose joint path (IK along the whole motion,
+seeded step to step), rolling and collisions (the batched checker of ``stages.robot``, at every
+other row) pass. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
+object (``stages.execute`` shifts its target by :func:`rolling_shift`), 2-4 cm over a 90° tumble; its
+contact must stay ``roll_margin`` inside its face, else the joints are solved by :func:`ik_follow`,
+which turns the ball with the object about the turning axis (the pusher's always are). Into USP the
+catcher's joints are solved backwards from the plan's final configuration, so the following USP
+regrasp starts exactly where the plan expects; its contact must be able to hold the object through
+the fall, which a contact on a face other than the landing one is not (the lying piano's top face:
+the only USP grasps the sampler gives it, since ``stages.sample`` refuses a ball under the overhang as
+``eef_under_object`` and for its centre below the table top); the MPC is then infeasible after the
+release, and the failure says so. The forces come from the tumbling MPC
+(``stages.mpc.run_tumble_mpc``), one run per segment of the roll, with the pusher switched off at
+its release. After the tumble each arm goes (a planned transit) to the configuration the plan
+assumes at the end of the step: the pusher to the end of its push, the catcher back where it was
+(SP) or on its grasp contact (USP).
 
 An MPC failure on an existing plan is reported (status ``mpc_infeasible`` with the primitive) and
 the stage exits 1: ``pivot plan`` runs the same MPC while it searches, so a plan it accepted passes
-unless the MPC parameters were changed here.
+unless the MPC parameters were changed here. A tumble that finds no catcher, no IK or no transit is
+reported the same way with its reason code (``no_catcher``, ``ik_unreachable``, ``no_transit_path``,
+...).
 """
 
 from __future__ import annotations
@@ -28,6 +74,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from stages import artifacts, mpc, se3, transit
 from stages.artifacts import Field
@@ -38,6 +85,44 @@ from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.sample import make_scene_collision_fn
 from stages.scene import load_scene
+
+ARMS = ("left", "right")
+
+
+@dataclass(frozen=True)
+class TumbleParams:
+    """How a tumble is carried out (s, rad, m); see the module docstring and the notes' "Tumbling"."""
+
+    #: Both contacts ramp in at the start pose for this long before the push.
+    grip_time: float = 0.6
+    #: From the start to the release angle, both balls on the object.
+    push_time: float = 3.5
+    #: Pause at the release angle; the pusher's contact ends halfway (its force ramps out before).
+    release_dwell: float = 1.2
+    #: From the release angle to the end of the catch, the catcher alone.
+    catch_time: float = 4.0
+    #: The pusher lets go at least this far past the angle where the CoM crosses over the axis.
+    release_past_tip: float = np.radians(10.0)
+    #: A catcher that would end under the object stops this far short of the landing, then slides out.
+    slide_short: float = np.radians(6.0)
+    slide_time: float = 0.15
+    #: Ball clearance beyond the face's far edge after sliding out, and above the table while catching (m).
+    slide_clearance: float = 0.01
+    table_clearance: float = 0.003
+    #: A catcher placing the object must end at least this far beyond the table's edge (m).
+    edge_clearance: float = 0.005
+    #: Catching contacts: outward normal within this angle of the landing direction; candidates tried.
+    catch_cone: float = np.radians(30.0)
+    catch_candidates: int = 8
+    #: Where the catcher's ball has rolled to at the end of the catch must lie this far inside its face (m).
+    roll_margin: float = 0.005
+    #: The object rests this long after landing before the arms leave (s).
+    settle: float = 1.0
+    #: A placing catcher backs off this far along its contact normal (m), in ``retreat_time`` s.
+    retreat: float = 0.03
+    retreat_time: float = 0.6
+    #: Collisions are checked on every this many rows of the tumble.
+    check_every: int = 2
 
 
 @dataclass(frozen=True)
@@ -50,43 +135,119 @@ class Params:
     #: plans leave room for what the compliant arms add in execution (the squeeze).
     friction_safety: float = 0.8
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
-    tumble_duration: float = 4.0
+    tumble: TumbleParams = field(default_factory=TumbleParams)
     hold: float = 0.5
     #: IK on every this many rows of a pivot or push (joints interpolated in between).
     ik_every: int = 4
     #: Fraction of the joint velocity limits used by transits.
     vel_scale: float = 0.5
     acc: float = 2.0
-
-
-@dataclass
-class _Rows:
-    """Accumulates trajectory rows, primitive by primitive."""
-
-    cols: dict = field(default_factory=lambda: {k: [] for k in COLUMNS})
-
-    def add(self, **arrays):
-        """One primitive's rows: every array has the same leading length T."""
-        T = len(arrays["t"])
-        for k in COLUMNS:
-            v = np.asarray(arrays[k])
-            assert len(v) == T, k
-            self.cols[k].append(v)
+    #: Transits planned here (a tumble's catcher, and the arms' way back to the plan's configurations).
+    transit: transit.Params = field(default_factory=transit.Params)
 
 
 COLUMNS = ("t", "primitive", "kind", "phase", "X", "X_ref", "X_start", "p_l", "p_r", "f_l", "f_r", "f_table",
            "q_l", "q_r", "c_l", "c_r")
 
 
-def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int) -> np.ndarray:
+class TumbleError(Exception):
+    """A tumble that cannot be carried out: ``code`` is a reason code (DESIGN.md), ``args[0]`` says why."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int, check: bool = False):
     """Joint path ``(T, n)`` through ball targets ``(T, 3)``: IK (seeded step to step, one branch) on
     every ``every``-th target and the last, joints interpolated linearly in between (the motions are
-    slow: the ball then strays well under a millimetre from its target between IK samples)."""
+    slow: the ball then strays well under a millimetre from its target between IK samples).
+
+    With ``check`` also returns the first IK failure's reason ("ok" when none)."""
     T = len(targets)
     keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
-    qk = robot.ik_trajectory(arm, targets[keys], q0).q
+    res = robot.ik_trajectory(arm, targets[keys], q0)
     t = np.arange(T)
-    return np.stack([np.interp(t, keys, qk[:, j]) for j in range(qk.shape[1])], axis=1)
+    q = np.stack([np.interp(t, keys, res.q[:, j]) for j in range(res.q.shape[1])], axis=1)
+    if not check:
+        return q
+    return q, ("ok" if res.ok.all() else str(res.reason[np.argmin(res.ok)]))
+
+
+def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, q0: np.ndarray,
+              every: int, iters: int = 12, tol: float = 1e-3, both: bool = False) -> tuple[np.ndarray, str]:
+    """Joint path ``(T, n)`` that puts the ball on ``targets (T, 3)`` (W) *and turns it with the object*.
+
+    A ball on a turning object rolls unless it turns with it (notes: "the ball turns with the
+    object"; ``stages.execute`` shifts its target by the rolling, :func:`rolling_shift`): over a
+    90° tumble a ball that keeps its orientation rolls 3 cm along the face, off a contact near the
+    edge. Here the ball's rotation about the object's turning axis (its part tangent to the contact,
+    whose outward normal is ``n_O``, O) follows the object's, row to row (the ball turned by the
+    object's turn since the previous row, about that axis only); the rest (spin about the normal,
+    rolling along the axis) is left to the posture.
+    Damped least squares with task priority: the position, then that rotation error in its null space;
+    geometric Jacobian, joint limits by clamping, on every ``every``-th row and the last, seeded from
+    the previous (one branch), joints interpolated between.
+    Returns the path and "ok", or the first failure ("ik_unreachable": a position error above ``tol``
+    m; "joint_jump": a step above 0.5 rad).
+    """
+    a = robot.arm(arm)
+    T, n = len(targets), a.dof
+    keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
+    R_rel = X_WO[:, :3, :3] @ X_WO[0, :3, :3].T
+    q = np.clip(np.asarray(q0, dtype=float), a.lower, a.upper)
+    lam2 = 1e-6
+    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    out, why = np.zeros((len(keys), n)), "ok"
+    axis = np.array([1.0, 0.0, 0.0])
+    for m, i in enumerate(keys):  # a few dozen key rows
+        q_prev = q.copy()
+        # The rotation about the object's turning axis rolls the ball across its face; the other
+        # tangential part (rolling along the axis) is left free unless ``both``: that keeps more of the
+        # arm's postures feasible.
+        n_W = se3.rotate_vectors(X_WO[i], n_O)
+        d = Rotation.from_matrix(R_rel[min(i + 1, T - 1)] @ R_rel[max(i - 1, 0)].T).as_rotvec()
+        if np.linalg.norm(d) > 1e-9:
+            axis = d / np.linalg.norm(d)
+        S = (axis - (axis @ n_W) * n_W)[None]
+        S /= max(np.linalg.norm(S), 1e-9)
+        if both:
+            S = np.vstack([S, np.cross(n_W, S[0])])
+        # Incrementally: the ball as it is, turned by the object's turn since the last key row (an
+        # absolute target would leak the free components' drift into the tracked one).
+        R_t = R_rel[i] @ R_rel[keys[m - 1] if m else i].T @ robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
+        free = np.ones(n)
+        for _ in range(iters):
+            F = robot.fk(arm, q[None])[0]
+            p, R = F[a.eef_index, :3, 3], F[a.eef_index, :3, :3]
+            w = np.einsum("kij,kj->ki", F[moving, :3, :3], a.axis[moving])  # world joint axes
+            Jw = np.zeros((3, n))
+            Jw[:, a.joint[moving]] = w.T
+            Jp = np.zeros((3, n))
+            Jp[:, a.joint[moving]] = np.cross(w, p - F[moving, :3, 3]).T
+            Jp, Jr = Jp * free, (S @ Jw) * free  # a joint the last step pushed into a limit sits out
+            e_p = targets[i] - p
+            e_r = S @ Rotation.from_matrix(R_t @ R.T).as_rotvec()
+            # Position first; the rotation in its null space (task priority).
+            Jp_pinv = Jp.T @ np.linalg.inv(Jp @ Jp.T + lam2 * np.eye(3))
+            dq1 = Jp_pinv @ e_p
+            N = np.eye(n) - Jp_pinv @ Jp
+            JrN = Jr @ N
+            dq = dq1 + N @ (JrN.T @ np.linalg.solve(JrN @ JrN.T + lam2 * np.eye(len(S)), e_r - Jr @ dq1))
+            dq *= min(1.0, 0.2 / max(np.abs(dq).max(), 1e-12))
+            q_new = q + dq
+            free = ((q_new > a.lower) | (dq > 0)) & ((q_new < a.upper) | (dq < 0))
+            q = np.clip(q_new, a.lower, a.upper)
+            if np.linalg.norm(e_p) < 1e-5 and np.abs(dq).max() < 1e-3:
+                break
+        err = np.linalg.norm(targets[i] - robot.eef_position(arm, q[None])[0])
+        if why == "ok" and err > tol:
+            why = "ik_unreachable"
+        elif why == "ok" and m > 0 and np.abs(q - q_prev).max() > 0.5:
+            why = "joint_jump"
+        out[m] = q
+    t = np.arange(T)
+    return np.stack([np.interp(t, keys, out[:, j]) for j in range(n)], axis=1), why
 
 
 def _ball_centres(X, p_O, n_O, r):
@@ -94,157 +255,597 @@ def _ball_centres(X, p_O, n_O, r):
     return se3.transform_points(X, p_O + r * n_O)
 
 
+def _other(arm: str) -> str:
+    return "right" if arm == "left" else "left"
+
+
+# ----------------------------------------------------------------------------------------------------
+# Rolling over an edge
+
+
+@dataclass(frozen=True)
+class Roll:
+    """A roll over successive hull edges onto a stable face (:func:`roll_segments`), W frame.
+
+    X_seg : (K, 4, 4) pose at the start of each segment; p_axis, a_axis : (K, 3) a point of its axis
+    (the first edge vertex) and the unit axis, right-handed in the sense of the roll; angle : (K,) rad;
+    edge : (K, 2) the hull vertex ids of each axis; face : the stable placement it lands on; X_end.
+    """
+
+    X_seg: np.ndarray
+    p_axis: np.ndarray
+    a_axis: np.ndarray
+    angle: np.ndarray
+    edge: np.ndarray
+    face: int
+    X_end: np.ndarray
+
+    @property
+    def total(self) -> float:
+        return float(self.angle.sum())
+
+    @property
+    def switches(self) -> np.ndarray:
+        """Cumulative angles where the axis changes, ``(K - 1,)``."""
+        return np.cumsum(self.angle)[:-1]
+
+    def poses(self, theta) -> np.ndarray:
+        return mpc.roll_poses(self.X_seg, self.p_axis, self.a_axis, self.angle, theta)
+
+    def segment_of(self, theta: float) -> int:
+        return int(np.clip(np.searchsorted(np.cumsum(self.angle), theta - 1e-9), 0, len(self.angle) - 1))
+
+
+def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16) -> Roll:
+    """Roll the object from its resting face over hull edge ``(v0, v1)`` until it rests on a stable face.
+
+    The same roll as the pose sampler's (``stages.poses``): over the edge onto the adjacent hull face;
+    while that face is not stable (a narrow face between a foot and the body), over the edge of it
+    beyond which the CoM lies. Raises ``InputError`` when ``(v0, v1)`` is not an edge of the resting
+    face or no stable face comes within ``max_faces`` faces or half a turn.
+    """
+    down = se3.rotate_vectors(X_WO, model.normals)[:, 2]
+    g = int(np.argmin(down))  # the resting face: outward normal straight down
+    match = np.flatnonzero(((model.edges[:, 0] == v0) & (model.edges[:, 1] == v1))
+                           | ((model.edges[:, 0] == v1) & (model.edges[:, 1] == v0)))
+    if len(match) == 0 or not np.any(model.edge_faces[match[0]] == g):
+        raise InputError(f"tumble: ({v0}, {v1}) is not a hull edge of the resting face {g}")
+    e, X, total = int(match[0]), X_WO.copy(), 0.0
+    segs = []
+    for _ in range(max_faces):  # a few faces at most
+        a, b = model.edges[e]
+        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
+        g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
+        angle = float(model.edge_angle[e])
+        axis = (pb - pa) / np.linalg.norm(pb - pa)
+        n2 = se3.rotate_vectors(X, model.normals[g2])
+        for sign in (1.0, -1.0):  # the sense that turns face g2 onto the table
+            T = se3.transform_about_line(pa, sign * axis, angle)
+            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
+                break
+        else:
+            raise InputError(f"tumble over ({v0}, {v1}): face {g2} does not turn onto the table")
+        segs.append((X, pa, sign * axis, angle, (int(a), int(b))))
+        X, g, total = T @ X, g2, total + angle
+        if total > np.pi + 1e-9:
+            break
+        if model.stable[g]:
+            return Roll(X_seg=np.stack([s[0] for s in segs]), p_axis=np.stack([s[1] for s in segs]),
+                        a_axis=np.stack([s[2] for s in segs]), angle=np.array([s[3] for s in segs]),
+                        edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=X)
+        com = se3.transform_points(X, model.com)
+        centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
+        best, best_d = -1, 0.0
+        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
+            if e2 == e:
+                continue
+            q = se3.transform_points(X, model.vertices[model.edges[e2]])
+            d = q[1, :2] - q[0, :2]
+            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
+            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
+                nrm = -nrm  # outward from the face
+            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
+            if beyond > best_d:
+                best, best_d = e2, beyond
+        if best < 0:
+            break
+        e = int(best)
+    raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Rows
+
+
+class _Timeline:
+    """Trajectory rows, primitive by primitive, and where each arm is (joints, contact id or -1)."""
+
+    def __init__(self, robot, r: float, p_O: np.ndarray, n_O: np.ndarray, dt: float, weight: float,
+                 v_max: dict, acc: float):
+        self.robot, self.r, self.p_O, self.n_O, self.dt = robot, r, p_O, n_O, dt
+        self.weight, self.v_max, self.acc = weight, v_max, acc
+        self.n = robot.arm("left").dof
+        self.cols: dict = {k: [] for k in COLUMNS}
+        self.t = 0.0
+        self.q = {a: np.zeros(self.n) for a in ARMS}
+        self.contact = {a: -1 for a in ARMS}
+
+    def ball(self, arm: str, X: np.ndarray) -> np.ndarray:
+        """Ball centre ``(3,)`` (W): on its contact of the object at ``X``, else where its joints put it."""
+        c = self.contact[arm]
+        if c < 0:
+            return self.robot.eef_position(arm, self.q[arm][None])[0]
+        return _ball_centres(X[None], self.p_O[c], self.n_O[c], self.r)[0]
+
+    def add(self, k: int, kind: str, phase, X, X_ref=None, p=None, f=None, q=None, c=None, f_table=None,
+            X_start=None) -> None:
+        """Rows ``dt`` apart from the current time: object poses ``X (T, 4, 4)``; per arm (dicts keyed by
+        arm) ball centres ``p (T, 3)``, forces ``f (T, 3)``, joints ``q (T, n)`` and contact flags
+        ``c (T,)``; an arm left out stays still on its contact (or where it is), with no force."""
+        T = len(X)
+        p, f, q, c = p or {}, f or {}, q or {}, c or {}
+        X_start = X[0] if X_start is None else X_start
+        out = {"t": self.t + self.dt * np.arange(T), "primitive": np.full(T, k), "kind": np.full(T, kind),
+               "phase": np.broadcast_to(np.asarray(phase), (T,)), "X": X, "X_ref": X if X_ref is None else X_ref,
+               "X_start": np.broadcast_to(X_start, (T, 4, 4)),
+               "f_table": (np.broadcast_to([0.0, 0.0, self.weight], (T, 3)) if f_table is None else f_table)}
+        for a, s in (("left", "l"), ("right", "r")):
+            out[f"p_{s}"] = p[a] if a in p else np.broadcast_to(self.ball(a, X[0]), (T, 3))
+            out[f"f_{s}"] = f[a] if a in f else np.zeros((T, 3))
+            out[f"q_{s}"] = q[a] if a in q else np.broadcast_to(self.q[a], (T, self.n))
+            out[f"c_{s}"] = c[a] if a in c else np.full(T, self.contact[a] >= 0)
+        for key in COLUMNS:
+            v = np.asarray(out[key])
+            assert len(v) == T, key
+            self.cols[key].append(v)
+        self.t += self.dt * T
+
+    def hold(self, X, k: int, duration: float, kind: str = "hold", phase: str = "hold", X_start=None) -> None:
+        T = max(1, int(round(duration / self.dt)))
+        self.add(k, kind, phase, np.broadcast_to(X, (T, 4, 4)), X_start=X_start)
+
+    def move_arm(self, arm: str, path, X, k: int, new_contact: int, phase: str | None = None) -> None:
+        """A transit of ``arm`` along joint waypoints ``path (K, n)``; it then rests on ``new_contact``."""
+        self.contact[arm] = -1
+        _, qs = transit.time_parameterize(np.asarray(path, dtype=float), self.v_max[arm], self.acc, dt=self.dt)
+        T = len(qs)
+        self.add(k, "transit", phase or arm, np.broadcast_to(X, (T, 4, 4)),
+                 p={arm: self.robot.eef_position(arm, qs)}, q={arm: qs})
+        self.q[arm] = qs[-1]
+        self.contact[arm] = new_contact
+
+    def columns(self) -> dict:
+        if not self.cols["t"]:
+            return {}
+        return _columns({k: np.concatenate(v) for k, v in self.cols.items()})
+
+
+# ----------------------------------------------------------------------------------------------------
+# Tumble
+
+
+@dataclass
+class _Env:
+    """What a tumble needs, loaded once."""
+
+    scene: object
+    robot: object
+    model: object
+    mesh: object
+    p_O: np.ndarray
+    n_O: np.ndarray
+    r: float
+    inertia: np.ndarray
+    mp: mpc.Params
+    params: Params
+    _collide: object = None
+
+    @property
+    def collide(self):
+        if self._collide is None:  # built on the first tumble: pivots and transits of the plan need none here
+            self._collide = make_scene_collision_fn(self.scene, self.robot, self.mesh)
+        return self._collide
+
+
+def rolling_shift(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, r: float) -> np.ndarray:
+    """Where a ball that keeps the orientation of its planned joints rolls to on the object, ``(T, 3)`` (m, O).
+
+    Without slip, its centre moves relative to the object by ``(omega_o - omega_ball) x r n_in`` (the
+    controller of ``stages.execute`` shifts its target the same way), accumulated over the rows of
+    ``q (T, n)`` and ``X_WO (T, 4, 4)`` from the first; ``n_O`` is the contact's outward normal (O).
+    """
+    a = robot.arm(arm)
+    R_b = robot.fk(arm, q)[:, a.eef_index, :3, :3]
+    R_o = X_WO[:, :3, :3]
+    d_o = Rotation.from_matrix(R_o[1:] @ np.swapaxes(R_o[:-1], 1, 2)).as_rotvec()
+    d_b = Rotation.from_matrix(R_b[1:] @ np.swapaxes(R_b[:-1], 1, 2)).as_rotvec()
+    n_in = -se3.rotate_vectors(X_WO[:-1], n_O)
+    step_W = np.cross(d_o - d_b, r * n_in)
+    step_O = np.einsum("tji,tj->ti", R_o[:-1], step_W)
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(step_O, axis=0)])
+
+
+def _face_margin(model, p_O: np.ndarray, n_O: np.ndarray, x_O: np.ndarray) -> float:
+    """How far (m) the point ``x_O`` lies inside the flat face through contact ``p_O`` with outward
+    normal ``n_O``, measured in the rectangle its mesh vertices span in the face's plane along the
+    face's principal directions (exact for a rectangular face, an over-estimate for others)."""
+    V = model.mesh_vertices[np.abs((model.mesh_vertices - p_O) @ n_O) < 1e-4]
+    if len(V) < 3:
+        return -np.inf
+    Q = V - V.mean(axis=0)
+    Q -= np.outer(Q @ n_O, n_O)
+    _, _, Wt = np.linalg.svd(Q, full_matrices=False)
+    e = Wt[:2]  # in-plane axes
+    lo, hi = (V @ e.T).min(axis=0), (V @ e.T).max(axis=0)
+    x = x_O @ e.T
+    return float(np.min(np.r_[x - lo, hi - x]))
+
+
+def _contact_at(env: _Env, arm: str, q: np.ndarray, X: np.ndarray, where: str) -> int:
+    """The contact whose ball centre the joints ``q`` put the ball on, with the object at ``X``."""
+    b_O = se3.transform_points(se3.invert(X), env.robot.eef_position(arm, q[None])[0])
+    d = np.linalg.norm(env.p_O + env.r * env.n_O - b_O, axis=1)
+    c = int(np.argmin(d))
+    if d[c] > 2e-3:
+        raise InputError(f"{where}: the {arm} ball ends {1000 * d[c]:.1f} mm from the nearest contact")
+    return c
+
+
+def _catch_candidates(env: _Env, roll: Roll, params: TumbleParams) -> np.ndarray:
+    """Contact ids on the landing face, best catcher first (module docstring)."""
+    d_O = roll.X_end[2, :3] * -1.0  # the landing direction (W -z) in O: R^T (0, 0, -1)
+    cand = np.flatnonzero(env.n_O @ d_O >= np.cos(params.catch_cone))
+    X0 = roll.X_seg[0]
+    a_O = X0[:3, :3].T @ roll.a_axis[0]
+    p_O = se3.transform_points(se3.invert(X0), roll.p_axis[0])
+    rel = env.p_O[cand] - p_O
+    along = rel @ a_O
+    lever = np.linalg.norm(rel - along[:, None] * a_O, axis=1)
+    off = np.abs((env.p_O[cand] - env.model.com) @ a_O)
+    order = np.lexsort((cand, -(lever - 0.5 * off)))
+    return cand[order][: params.catch_candidates]
+
+
+def _collision_free(env: _Env, q_l, q_r, X, touching, every: int) -> tuple[bool, str]:
+    """Batched collision check of rows (every ``every``-th and the last)."""
+    T = len(X)
+    rows = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
+    ok, why = env.collide(q_l[rows], q_r[rows], X[rows], touching[rows])
+    if ok.all():
+        return True, "ok"
+    return False, str(why[np.argmin(ok)])
+
+
+def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c: float, X_ref, X_to, q_p, q_end,
+                    follow: bool, P: TumbleParams):
+    """The catcher's joints on contact ``c`` along ``X_ref`` and on its way out (slide or back off),
+    checked for IK, rolling and collisions (module docstring); ``(q_c, X_out, tgt_out, q_out)`` or the
+    reason it fails."""
+    robot, model, r = env.robot, env.model, env.r
+    T = len(X_ref)
+    tgt_c = _ball_centres(X_ref, env.p_O[c], env.n_O[c], r)
+    if mode == "hold":  # backwards from the plan's final configuration; it must end on its contact
+        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1, both=not follow)
+        q_c = q_c[::-1]
+    else:
+        first = robot.ik(catcher, tgt_c[:1], rng=np.random.default_rng(0))
+        if not first.ok[0]:
+            return f"{first.reason[0]} at the start"
+        if follow:
+            q_c, why = ik_follow(robot, catcher, tgt_c, X_ref, env.n_O[c], first.q[0], 1)
+        else:
+            q_c, why = _ik_path(robot, catcher, tgt_c, first.q[0], env.params.ik_every, check=True)
+    if why != "ok":
+        return why
+    # Where the ball touches at the end of the catch, having rolled, must still be on the face.
+    shift = rolling_shift(robot, catcher, q_c, X_ref, env.n_O[c], r)[-1]
+    inside = _face_margin(model, env.p_O[c], env.n_O[c], env.p_O[c] + shift)
+    if inside < P.roll_margin:
+        return f"the ball rolls to {1000 * inside:.0f} mm from the face's edge"
+    # The way out: slide past the far edge of the face (from where the ball has rolled to), or back off
+    # along the contact normal.
+    s = np.zeros(0)
+    X_out, tgt_out, q_out = np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros((0, q_c.shape[1]))
+    dt = env.params.mpc.dt
+    if mode == "slide":
+        X_c = X_ref[-1]
+        seg = roll.segment_of(th_c)
+        p_ax = se3.transform_points(se3.invert(X_c), roll.p_axis[seg])
+        a_ax = X_c[:3, :3].T @ roll.a_axis[seg]
+        u = env.p_O[c] - p_ax
+        u -= (u @ a_ax) * a_ax + (u @ env.n_O[c]) * env.n_O[c]
+        u /= np.linalg.norm(u)
+        reach = float(np.max((model.vertices - env.p_O[c]) @ u)) + r + P.slide_clearance + max(0.0, -shift @ u)
+        n_s = max(2, int(np.ceil(P.slide_time / dt)))
+        s = reach * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
+        X_out = np.broadcast_to(X_c, (n_s, 4, 4))
+        tgt_out = se3.transform_points(X_c, env.p_O[c] + r * env.n_O[c] + s[:, None] * u)
+    elif mode == "place":
+        n_s = max(2, int(np.ceil(P.retreat_time / dt)))
+        s = P.retreat * mpc.min_jerk(np.arange(1, n_s + 1) / n_s)
+        X_out = np.broadcast_to(X_to, (n_s, 4, 4))
+        tgt_out = se3.transform_points(X_to, env.p_O[c] + (r + s[:, None]) * env.n_O[c])
+    if len(tgt_out):
+        res = robot.ik_trajectory(catcher, tgt_out, q_c[-1])
+        if not res.ok.all():
+            return f"{res.reason[np.argmin(res.ok)]} on the way out"
+        q_out = res.q
+    # Collisions along the whole motion. The pusher's ball is exempt from the object throughout (the
+    # object turns away from it); the catcher's while it touches: until it has slid out (the last slide
+    # row is clear) or backed off half way, and for good when it holds.
+    X_all = np.concatenate([X_ref, X_out, X_to[None]])
+    qc_all = np.concatenate([q_c, q_out, (q_out if len(q_out) else q_c)[-1:]])
+    qp_all = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(X_out) + 1, q_p.shape[1]))])
+    out = s < (s[-1] if mode == "slide" else 0.5 * s[-1]) if len(s) else np.zeros(0, bool)
+    touch_c = np.r_[np.ones(T, bool), out, mode == "hold"]
+    touching = np.stack([np.ones(len(X_all), bool), touch_c], axis=1)
+    if catcher == "left":
+        touching = touching[:, ::-1]
+    q_l, q_r = (qc_all, qp_all) if catcher == "left" else (qp_all, qc_all)
+    ok, why = _collision_free(env, q_l, q_r, X_all, touching, P.check_every)
+    if not ok:
+        return why
+    return q_c, X_out, tgt_out, q_out
+
+
+def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
+    """Rows of one tumble step (module docstring, "Tumble"), appended to ``tl``; returns a summary
+    (catcher, contact, mode, angles, MPC figures). Raises :class:`TumbleError` when it cannot be done."""
+    P, dt, r = env.params.tumble, env.params.mpc.dt, env.r
+    robot, model = env.robot, env.model
+    gp = GraphParams()
+    pusher = str(step["pusher"])
+    catcher = _other(pusher)
+    c_p = int(step["pusher_contact"])
+    e0, e1 = (int(v) for v in step["edge"])
+    roll = roll_segments(model, X_from, e0, e1)
+    if np.abs(roll.X_end - X_to).max() > 1e-5:
+        raise InputError(f"plan step {k}: rolling over edge ({e0}, {e1}) does not land on X_WO_to")
+    found, c_found, q_push = pusher_motion(robot, env.collide, model, X_from, X_to, e0, e1, env.p_O, env.n_O, r,
+                                           gp, arms=(pusher,))
+    if found is None or c_found != c_p:
+        raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
+    usp = "grasp_to" in step
+    q_after = {pusher: q_push[-1], catcher: tl.q[catcher]}
+    if usp:  # the plan moves the catcher onto the destination grasp before the push, the pusher after it
+        q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
+        candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
+    else:
+        candidates = _catch_candidates(env, roll, P)
+    if not len(candidates):
+        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face")
+
+    # The release angle: the plan's push, and past the angle where the CoM crosses over the axis.
+    grid = np.linspace(0.0, roll.total, 721)
+    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
+    th_r = max(gp.push_angle, th_tip + P.release_past_tip)
+    knots_hi = np.r_[roll.switches, roll.total]
+
+    def pieces(a, b, duration):
+        """Knots from a to b stopping at every axis switch between them, durations by angle."""
+        ks = np.r_[a, knots_hi[(knots_hi > a + 1e-9) & (knots_hi < b - 1e-9)], b]
+        d = np.diff(ks) / max(b - a, 1e-12) * duration
+        return list(ks[1:]), list(np.maximum(d, 0.25))
+
+    why, pusher_paths, found = "no candidate", {}, None
+    half = np.asarray(env.scene.table.size) / 2
+    for c in candidates:  # a handful, best first
+        b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
+        if usp:
+            mode, th_c = "hold", roll.total
+        elif np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
+            mode, th_c = "place", roll.total
+        else:  # slide out short of the landing, with the ball above the table
+            z = _ball_centres(roll.poses(grid), env.p_O[c], env.n_O[c], r)[:, 2]
+            high = grid[(z >= r + P.table_clearance) & (grid <= roll.total - P.slide_short)]
+            mode, th_c = "slide", float(high.max()) if len(high) else 0.0
+        if th_c < th_r + np.radians(5.0):
+            why = f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release"
+            continue
+        k1, d1 = pieces(0.0, th_r, P.push_time)
+        k2, d2 = pieces(th_r, th_c, P.catch_time)
+        t_prof, theta = mpc.knot_profile([0.0, 0.0, *k1, th_r, *k2], [P.grip_time, *d1, P.release_dwell, *d2], dt)
+        on_p = t_prof < P.grip_time + sum(d1) + P.release_dwell / 2 - 1e-9
+        X_ref = roll.poses(theta)
+        n_rel = int(np.count_nonzero(on_p))
+        if n_rel not in pusher_paths:  # the same for every catcher
+            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], r)
+            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0], 1)
+        q_p, why_p = pusher_paths[n_rel]
+        if why_p != "ok":
+            raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
+        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, tl.n))])
+        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
+        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
+        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
+        # with the object (no rolling at all), else about the turning axis only (rolling along it).
+        for follow in (False, True):  # into USP: turning with the object about both tangents, then one
+            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_after[catcher], follow, P)
+            if isinstance(got, str):
+                why = f"contact {c}: {got}"
+                continue
+            ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
+            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got)
+            break
+        if found is not None:
+            break
+    if found is None:
+        raise TumbleError("no_catcher", f"step {k}: no catcher works ({why})")
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = found
+    T = len(theta)
+    tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
+
+    # Forces: the tumbling MPC, one run per segment of the roll (at rest at every switch).
+    seg = np.array([roll.segment_of(th) for th in theta])
+    X_mpc, f_mpc, f_tab = X_ref.copy(), np.zeros((T, 2, 3)), np.zeros((T, 3))
+    errs = []
+    for s_id in np.unique(seg):  # one to three segments
+        rows = np.flatnonzero(seg == s_id)
+        if len(rows) < 2:
+            f_mpc[rows] = f_mpc[max(rows[0] - 1, 0)]
+            continue
+        p_edge = se3.transform_points(roll.X_seg[s_id], model.vertices[roll.edge[s_id]])
+        res = mpc.run_tumble_mpc(env.scene.object.mass, env.inertia, model.com, env.p_O[[c_p, c]],
+                                 -env.n_O[[c_p, c]], p_edge, t_prof[rows] - t_prof[rows[0]], X_ref[rows],
+                                 env.mp, contact_mask=np.stack([on_p[rows], np.ones(len(rows), bool)], axis=1))
+        if res.status != "ok":
+            why = f"step {k}: the tumbling MPC fails at row {res.fail_step} of segment {s_id} ({res.fail_reason})"
+            if mode == "hold" and not on_p[rows[min(res.fail_step, len(rows) - 1)]]:
+                off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
+                why += (f": after the release the destination grasp's catching contact {c} (its normal "
+                        f"{off:.0f} deg from the landing face's) cannot hold the object alone")
+            raise TumbleError("mpc_infeasible", why)
+        X_mpc[rows], f_mpc[rows], f_tab[rows] = res.X_WO, res.f_eef_W, res.f_table_W
+        errs.append(float(np.max(res.tracking_error)))
+
+    ip, ic = (0, 1)
+    tl.move_arm(pusher, step["transit"][pusher], X_from, k, -1)
+    n_start = se3.rotate_vectors(X_from, env.n_O[tl.contact[catcher]]) if tl.contact[catcher] >= 0 else None
+    res = transit.plan_transit(robot, env.collide, catcher, tl.q[catcher], q_c[0], tl.q[pusher], X_from,
+                               env.params.transit, n_start=n_start, n_goal=se3.rotate_vectors(X_from, env.n_O[c]))
+    if res.status != "ok":
+        raise TumbleError(res.status, f"step {k}: the catcher's transit: {res.reason}")
+    tl.move_arm(catcher, res.path, X_from, k, -1)
+    phase = np.where(t_prof < P.grip_time, "grip", np.where(on_p, "push", np.where(
+        theta < th_r + 1e-9, "release", "catch")))
+    tl.add(k, "tumble", phase, X_mpc, X_ref=X_ref, X_start=X_from,
+           p={pusher: np.concatenate([_ball_centres(X_mpc[:n_rel], env.p_O[c_p], env.n_O[c_p], r),
+                                      np.broadcast_to(tgt_p[n_rel - 1], (T - n_rel, 3))]),
+              catcher: _ball_centres(X_mpc, env.p_O[c], env.n_O[c], r)},
+           f={pusher: f_mpc[:, ip], catcher: f_mpc[:, ic]}, q={pusher: q_p, catcher: q_c},
+           c={pusher: on_p, catcher: np.ones(T, bool)}, f_table=f_tab)
+    tl.q[pusher], tl.q[catcher] = q_p[-1], q_c[-1]
+    tl.contact[pusher], tl.contact[catcher] = -1, c
+    n_out = len(X_out)
+    if mode == "slide":
+        tl.contact[catcher] = -1
+        tl.add(k, "tumble", "slide", X_out, X_start=X_from, p={catcher: tgt_out},
+               f={catcher: np.broadcast_to(f_mpc[-1, ic], (n_out, 3))}, q={catcher: q_out},
+               c={catcher: np.ones(n_out, bool)})
+        tl.q[catcher] = q_out[-1]
+        X_drop = _free_fall(env, roll, th_c, dt)
+        tl.add(k, "tumble", "drop", X_drop, X_start=X_from)
+        tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
+    elif mode == "place":
+        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="place", X_start=X_from)
+        tl.contact[catcher] = -1
+        tl.add(k, "tumble", "retreat", X_out, X_start=X_from, p={catcher: tgt_out}, q={catcher: q_out},
+               c={catcher: np.zeros(n_out, bool)})
+        tl.q[catcher] = q_out[-1]
+        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="settle", X_start=X_from)
+    else:
+        tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
+    # The arms go where the plan has them at the end of the step.
+    for arm in (pusher, catcher):
+        if np.abs(tl.q[arm] - q_after[arm]).max() < 1e-9:
+            continue
+        touching = tl.contact[arm] >= 0
+        res = transit.plan_transit(robot, env.collide, arm, tl.q[arm], q_after[arm], tl.q[_other(arm)], X_to,
+                                   env.params.transit,
+                                   n_start=se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None,
+                                   n_goal=se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None)
+        if res.status != "ok":
+            raise TumbleError(res.status, f"step {k}: the {arm} arm's way back: {res.reason}")
+        tl.move_arm(arm, res.path, X_to, k, tl.contact[arm])
+    if usp and f"{pusher}_after" in step["transit"]:  # the pusher takes its contact of the grasp
+        path = np.asarray(step["transit"][f"{pusher}_after"], dtype=float)
+        tl.move_arm(pusher, path, X_to, k, _contact_at(env, pusher, path[-1], X_to, f"plan step {k}"))
+    return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "catcher_ik": ik,
+            "release_deg": float(np.degrees(th_r)),
+            "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
+            "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
+
+
+def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
+    """Planned poses ``(T, 4, 4)`` of the object falling from rest at roll angle ``th_c`` onto its face:
+    the rotation about the current axis with gravity alone (``mpc.integrate_rotation``), then any
+    narrow faces left, a row each."""
+    s_id = roll.segment_of(th_c)
+    end = float(np.cumsum(roll.angle)[s_id])
+    X_c = roll.poses([th_c])[0]
+    sup_O = env.model.vertices[roll.edge[s_id]]
+    zeros = np.zeros((2, 3))
+    rot = mpc.make_rotation_model(env.scene.object.mass, env.inertia, env.model.com, zeros,
+                                  np.array([[0.0, 0.0, 1.0]] * 2), sup_O, env.mp.g)
+    R, nu, th, out = X_c[:3, :3], np.zeros(1), th_c, []
+    while th < end - 1e-9 and len(out) < 200:  # a fraction of a second
+        R, nu = mpc.integrate_rotation(rot, R, nu, zeros, dt, substeps=4)
+        th = th_c + float(Rotation.from_matrix(R @ X_c[:3, :3].T).as_rotvec() @ roll.a_axis[s_id])
+        out.append(min(th, end))
+    later = np.cumsum(roll.angle)[s_id + 1:]
+    return roll.poses(np.r_[out, later])
+
+
+# ----------------------------------------------------------------------------------------------------
+# The stage
+
+
 def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict]:
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    collide = None  # built on the first tumble only: pivots and transits need no collision checks here
     con = tables["contacts"]
     p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
     r = scene.robot.ball_radius
     summ = tables["summary"]
     mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
-                   mu_table=params.friction_safety * scene.table.friction,
-                 f_max=scene.robot.max_eef_force)
+                 mu_table=params.friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
     dt = mp.dt
-    rows = _Rows()
-    n = robot.arm("left").dof
-    q = {"left": np.zeros(n), "right": np.zeros(n)}
-    contact = {"left": -1, "right": -1}
-    t_now = 0.0
-    stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1}
-    v_max = {a: robot.arm(a).velocity * params.vel_scale for a in ("left", "right")}
+    inertia = np.asarray(summ["inertia"])
+    env = _Env(scene=scene, robot=robot, model=model, mesh=tables["mesh"], p_O=p_O, n_O=n_O, r=r, inertia=inertia,
+               mp=mp, params=params)
+    tl = _Timeline(robot, r, p_O, n_O, dt, scene.object.mass * mp.g,
+                   {a: robot.arm(a).velocity * params.vel_scale for a in ARMS}, params.acc)
+    stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
+             "tumbles": []}
 
     def pose_of(step, key):
         return se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in step[key].items()})[0]
-
-    def ball(arm, X):
-        c = contact[arm]
-        if c < 0:
-            return robot.eef_position(arm, q[arm][None])[0]
-        return _ball_centres(X[None], p_O[c], n_O[c], r)[0]
-
-    def hold(X, k, kind="hold"):
-        nonlocal t_now
-        T = max(1, int(round(params.hold / dt)))
-        t = t_now + dt * np.arange(T)
-        rows.add(t=t, primitive=np.full(T, k), kind=np.full(T, kind), phase=np.full(T, "hold"),
-                 X=np.broadcast_to(X, (T, 4, 4)), X_ref=np.broadcast_to(X, (T, 4, 4)),
-                 X_start=np.broadcast_to(X, (T, 4, 4)), p_l=np.broadcast_to(ball("left", X), (T, 3)),
-                 p_r=np.broadcast_to(ball("right", X), (T, 3)), f_l=np.zeros((T, 3)), f_r=np.zeros((T, 3)),
-                 f_table=np.broadcast_to([0, 0, scene.object.mass * mp.g], (T, 3)),
-                 q_l=np.broadcast_to(q["left"], (T, n)), q_r=np.broadcast_to(q["right"], (T, n)),
-                 c_l=np.full(T, contact["left"] >= 0), c_r=np.full(T, contact["right"] >= 0))
-        t_now = t[-1] + dt
-
-    def move_arm(arm, path, X, k, new_contact):
-        nonlocal t_now
-        contact[arm] = -1
-        t, qs = transit.time_parameterize(np.asarray(path), v_max[arm], params.acc, dt=dt)
-        T = len(t)
-        other = "right" if arm == "left" else "left"
-        p_arm = robot.eef_position(arm, qs)
-        p_other = np.broadcast_to(ball(other, X), (T, 3))
-        q_other = np.broadcast_to(q[other], (T, n))
-        rows.add(t=t_now + t, primitive=np.full(T, k), kind=np.full(T, "transit"), phase=np.full(T, arm),
-                 X=np.broadcast_to(X, (T, 4, 4)), X_ref=np.broadcast_to(X, (T, 4, 4)),
-                 X_start=np.broadcast_to(X, (T, 4, 4)), p_l=p_arm if arm == "left" else p_other,
-                 p_r=p_arm if arm == "right" else p_other, f_l=np.zeros((T, 3)), f_r=np.zeros((T, 3)),
-                 f_table=np.broadcast_to([0, 0, scene.object.mass * mp.g], (T, 3)),
-                 q_l=qs if arm == "left" else q_other, q_r=qs if arm == "right" else q_other,
-                 c_l=np.full(T, contact["left"] >= 0), c_r=np.full(T, contact["right"] >= 0))
-        t_now += t[-1] + dt
-        q[arm] = qs[-1]
-        contact[arm] = new_contact
 
     for k, step in enumerate(plan["steps"]):  # a few dozen primitives
         prim = step["primitive"]
         X_from, X_to = pose_of(step, "X_WO_from"), pose_of(step, "X_WO_to")
         if prim == "regrasp":
             for arm in step.get("arms", []):
-                move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]))
+                tl.move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]))
             if step.get("arms"):
-                hold(X_from, k)
+                tl.hold(X_from, k, params.hold)
         elif prim == "pivot":
             vtx = int(step["vertex"])
             p0 = se3.transform_points(X_from, model.vertices[vtx])
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            res = mpc.run_pivot_mpc(scene.object.mass, np.asarray(summ["inertia"]), model.com, p_O[[cl, cr]],
-                                    -n_O[[cl, cr]], p0, t, Xr, mp)
+            res = mpc.run_pivot_mpc(scene.object.mass, inertia, model.com, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr,
+                                    mp)
             if res.status != "ok":
                 stats.update(status="mpc_infeasible", failed_primitive=k)
                 break
             X = res.X_WO
             targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
-            ql = _ik_path(robot, "left", targets[:, 0], q["left"], params.ik_every)
-            qr = _ik_path(robot, "right", targets[:, 1], q["right"], params.ik_every)
+            ql = _ik_path(robot, "left", targets[:, 0], tl.q["left"], params.ik_every)
+            qr = _ik_path(robot, "right", targets[:, 1], tl.q["right"], params.ik_every)
             T = len(t)
-            rows.add(t=t_now + t, primitive=np.full(T, k), kind=np.full(T, "pivot"), phase=phase, X=X, X_ref=Xr,
-                     X_start=np.broadcast_to(X_from, (T, 4, 4)),
-                     p_l=targets[:, 0], p_r=targets[:, 1], f_l=res.f_eef_W[:, 0], f_r=res.f_eef_W[:, 1],
-                     f_table=res.f_table_W, q_l=ql, q_r=qr, c_l=np.ones(T, bool), c_r=np.ones(T, bool))
-            t_now += t[-1] + dt
-            q["left"], q["right"] = ql[-1], qr[-1]
+            tl.add(k, "pivot", phase, X, X_ref=Xr, X_start=X_from, p={"left": targets[:, 0], "right": targets[:, 1]},
+                   f={"left": res.f_eef_W[:, 0], "right": res.f_eef_W[:, 1]}, q={"left": ql, "right": qr},
+                   c={"left": np.ones(T, bool), "right": np.ones(T, bool)}, f_table=res.f_table_W)
+            tl.q["left"], tl.q["right"] = ql[-1], qr[-1]
+            tl.contact["left"], tl.contact["right"] = cl, cr
             stats["mpc_max_error"] = max(stats["mpc_max_error"], float(np.max(res.tracking_error)))
             stats["mpc_iters"].append(float(np.median(res.n_iter[res.n_iter >= 0])))
-            hold(X_to, k)
+            tl.hold(X_to, k, params.hold)
         elif prim == "tumble":
-            pusher = step["pusher"]
-            c = int(step["pusher_contact"])
-            move_arm(pusher, step["transit"][pusher], X_from, k, c)
-            e0, e1 = step["edge"]
-            collide = collide or make_scene_collision_fn(scene, robot, tables["mesh"])
-            found, _, q_push = pusher_motion(robot, collide, model, X_from, X_to, e0, e1, p_O, n_O, r,
-                                             GraphParams(), arms=(pusher,))
-            if found is None:
-                raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
-            pe = se3.transform_points(X_from, model.vertices[[e0, e1]])
-            axis = (pe[1] - pe[0]) / np.linalg.norm(pe[1] - pe[0])
-            ang = float(np.arccos(np.clip((np.trace(X_to[:3, :3] @ X_from[:3, :3].T) - 1) / 2, -1, 1)))
-            if np.dot(se3.quat_from_matrix(X_to[:3, :3] @ X_from[:3, :3].T)[:3], axis) < 0:
-                axis = -axis
-            t, Xr, phase = mpc.tumble_reference(X_from, pe[0], axis, ang, dt, params.tumble_duration)
-            push_end = np.flatnonzero(np.array([se3.tilt_of(Xr[i][:3, :3] @ X_from[:3, :3].T)
-                                                for i in range(len(Xr))]) <= GraphParams().push_angle)[-1]
-            target = _ball_centres(Xr[: push_end + 1], p_O[c], n_O[c], r)
-            qp = _ik_path(robot, pusher, target, q[pusher], params.ik_every)
-            T = len(t)
-            f = np.zeros((T, 3))
-            res = mpc.run_tumble_mpc(scene.object.mass, np.asarray(summ["inertia"]), model.com,
-                                     p_O[[c, c]], -n_O[[c, c]], pe, t[: push_end + 1], Xr[: push_end + 1], mp,
-                                     contact_mask=(True, False))
-            if res.status == "ok":
-                f[: push_end + 1] = res.f_eef_W[:, 0]
-            q_arm = np.concatenate([qp, np.broadcast_to(qp[-1], (T - len(qp), n))])
-            p_arm = np.concatenate([target, np.broadcast_to(target[-1], (T - len(target), 3))])
-            other = "right" if pusher == "left" else "left"
-            in_contact = np.arange(T) <= push_end
-            rows.add(t=t_now + t, primitive=np.full(T, k), kind=np.full(T, "tumble"), phase=phase, X=Xr, X_ref=Xr,
-                     X_start=np.broadcast_to(X_from, (T, 4, 4)),
-                     p_l=p_arm if pusher == "left" else np.broadcast_to(ball(other, X_from), (T, 3)),
-                     p_r=p_arm if pusher == "right" else np.broadcast_to(ball(other, X_from), (T, 3)),
-                     f_l=f if pusher == "left" else np.zeros((T, 3)), f_r=f if pusher == "right" else np.zeros((T, 3)),
-                     f_table=np.broadcast_to([0, 0, scene.object.mass * mp.g], (T, 3)),
-                     q_l=q_arm if pusher == "left" else np.broadcast_to(q[other], (T, n)),
-                     q_r=q_arm if pusher == "right" else np.broadcast_to(q[other], (T, n)),
-                     c_l=in_contact if pusher == "left" else np.zeros(T, bool),
-                     c_r=in_contact if pusher == "right" else np.zeros(T, bool))
-            t_now += t[-1] + dt
-            q[pusher] = q_arm[-1]
-            contact[pusher] = -1
-            for arm in ("left", "right"):  # into USP: the catcher, then the pusher, take the new grasp
-                key = f"{arm}_after"
-                if key in step["transit"]:
-                    move_arm(arm, step["transit"][key], X_to, k, int(step.get("contacts", {}).get(arm, -1)))
-            hold(X_to, k)
+            try:
+                info = plan_tumble(env, tl, k, step, X_from, X_to)
+            except TumbleError as err:
+                stats.update(status=err.code, failed_primitive=k, reason=str(err))
+                break
+            stats["mpc_max_error"] = max(stats["mpc_max_error"], info["mpc_max_error"])
+            stats["tumbles"].append({"step": k, **info})
+            tl.hold(X_to, k, params.hold)
         stats["primitives"] += 1
-    cols = {}
-    if rows.cols["t"]:
-        cat = {k: np.concatenate(v) for k, v in rows.cols.items()}
-        cols = _columns(cat)
+    cols = tl.columns()
     stats["mpc_iters"] = float(np.median(stats["mpc_iters"])) if stats["mpc_iters"] else 0.0
     stats["steps"] = int(len(cols.get("step", [])))
     stats["duration"] = float(cols["t"][-1]) if cols else 0.0

@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from stages import mpc, se3
 from stages.errors import InputError
+from tests.conftest import PIANO, REPO
 
 A = 0.2  # box edge (m)
 MASS = 2.0  # kg
@@ -449,3 +450,132 @@ def test_tumble_model_holds_a_usp_pose_on_an_edge_with_one_arm():
     assert np.einsum("vfi,tvi->tvf", H_tab, res.f_support_W).max() < F_TOL
     torque_y = np.cross(res.p_eef_W[-1, 0] - edge_W[0], res.f_eef_W[-1, 0])[1]
     assert torque_y == pytest.approx(-np.cross(r_com, [0.0, 0.0, -MASS * G])[1], rel=1e-3)
+
+
+# ------------------------------------------------------------------------------------------
+# Rolling references (tumbles whose axis switches)
+# ------------------------------------------------------------------------------------------
+
+
+def test_knot_profile_moves_between_knots_and_rests_at_each():
+    t, v = mpc.knot_profile([0.0, 0.0, 1.0, 1.0, 3.0], [0.5, 1.0, 0.4, 2.0], 0.02)
+    assert np.allclose(np.diff(t), 0.02) and t[-1] == pytest.approx(3.9)
+    assert v[0] == 0.0 and v[-1] == 3.0 and np.all(np.diff(v) >= -1e-12)  # monotone through the knots
+    for tk, vk in ((0.5, 0.0), (1.5, 1.0), (1.9, 1.0)):
+        k = int(round(tk / 0.02))
+        assert v[k] == pytest.approx(vk, abs=1e-12)
+        assert abs(v[k + 1] - v[k]) < 1e-3 and abs(v[k] - v[k - 1]) < 1e-3  # at rest there
+    assert np.all(v[t < 0.5] == 0.0)  # the pause
+
+
+def test_roll_poses_turn_about_each_segment_axis_in_turn():
+    # The cube turns 30 deg about its front bottom edge, then 60 deg about a parallel line 5 cm ahead
+    # (as a legged body switches from its foot line to its body edge).
+    a = np.array([0.0, 1.0, 0.0])
+    p0 = np.array([A / 2, -A / 2, 0.0])
+    X1 = se3.transform_about_line(p0, a, np.radians(30.0)) @ X_WO0
+    p1 = p0 + [0.05, 0.0, 0.0]
+    th = np.radians(np.linspace(0.0, 90.0, 31))
+    X = mpc.roll_poses(np.stack([X_WO0, X1]), np.stack([p0, p1]), np.stack([a, a]), np.radians([30.0, 60.0]), th)
+    first, second = th <= np.radians(30.0) + 1e-12, th >= np.radians(30.0) - 1e-12
+    P0_O = se3.transform_points(se3.invert(X_WO0), p0)
+    P1_O = se3.transform_points(se3.invert(X1), p1)
+    assert np.abs(se3.transform_points(X[first], P0_O) - p0).max() < 1e-12  # the first axis stays put
+    assert np.abs(se3.transform_points(X[second], P1_O) - p1).max() < 1e-12  # then the second
+    assert _rot_angle(X[-1, :3, :3], X_WO0[:3, :3]) == pytest.approx(np.pi / 2, abs=1e-12)
+    assert np.allclose(mpc.roll_poses(np.stack([X_WO0, X1]), np.stack([p0, p1]), np.stack([a, a]),
+                                      np.radians([30.0, 60.0]), [-1.0, 10.0])[[0, 1]], [X_WO0, X[-1]])
+
+
+# ------------------------------------------------------------------------------------------
+# The tumble's geometry in the MPC stage (stages.trajectory)
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def piano_model(tmp_path_factory):
+    from stages import analyze
+    from stages.objectmodel import load_object_model
+
+    out = tmp_path_factory.mktemp("analysis")
+    analyze.run(PIANO, out, 3.1, analyze.Params())
+    return load_object_model(out)
+
+
+def _upright_and_back_edge(model):
+    """The piano upright at the origin, yawed 180 deg, and its back foot line (the edge to -y in W)."""
+    g = int(np.argmin(model.normals[:, 2]))  # resting on its feet: outward normal -z
+    X = se3.make_transform(se3.rot_z(np.pi), [0.0, 0.0, 0.0]) @ model.X_TO[g]
+    on_face = np.isin(model.edges, np.asarray(model.support[g])).all(axis=1)
+    mid_y = se3.transform_points(X, model.vertices[model.edges].mean(axis=1))[:, 1]
+    e = np.flatnonzero(on_face)[np.argmin(mid_y[on_face])]
+    return X, g, int(e)
+
+
+def test_piano_rolls_about_its_foot_line_then_its_body_edge_onto_its_back(piano_model):
+    from stages import poses, trajectory
+
+    model, _ = piano_model
+    X, g, e = _upright_and_back_edge(model)
+    roll = trajectory.roll_segments(model, X, *model.edges[e])
+    # Legs 9 cm long, inset 2 mm behind the back: 88.73 deg about the foot line (atan(0.09 / 0.002)),
+    # then the body edge touches and it turns the last 1.27 deg about that.
+    assert len(roll.angle) == 2
+    assert np.degrees(roll.angle[0]) == pytest.approx(np.degrees(np.arctan2(0.09, 0.002)), abs=0.01)
+    assert np.degrees(roll.total) == pytest.approx(90.0, abs=1e-9)
+    # The pose sampler rolls the same way to the same pose (its back face down).
+    X_s, g_s, total = poses._tumble(model, X, g, e)
+    assert np.abs(roll.X_end - X_s).max() < 1e-12 and roll.face == g_s and total == pytest.approx(roll.total)
+    assert se3.rotate_vectors(roll.X_end, model.normals[roll.face])[2] == pytest.approx(-1.0)
+    # Along the roll each segment's axis stays on the table while the object turns about it.
+    th = np.linspace(0.0, roll.total, 181)
+    Xs = roll.poses(th)
+    for k in range(2):
+        inside = (th >= [0.0, *np.cumsum(roll.angle)][k] - 1e-12) & (th <= np.cumsum(roll.angle)[k] + 1e-12)
+        ends = se3.transform_points(Xs[inside][:, None], model.vertices[roll.edge[k]][None])
+        assert np.abs(ends - ends[:1]).max() < 1e-12 and np.abs(ends[..., 2]).max() < 1e-12
+    # No hull vertex ever goes under the table.
+    assert se3.transform_points(Xs[:, None], model.vertices[None])[..., 2].min() > -1e-9
+
+
+def test_roll_segments_rejects_an_edge_off_the_resting_face(piano_model):
+    from stages import trajectory
+
+    model, _ = piano_model
+    X, g, _ = _upright_and_back_edge(model)
+    off = np.flatnonzero(~np.isin(model.edges, np.asarray(model.support[g])).all(axis=1))[0]
+    with pytest.raises(InputError, match="not a hull edge of the resting face"):
+        trajectory.roll_segments(model, X, *model.edges[off])
+
+
+def test_a_ball_turned_with_the_object_does_not_roll_off_its_contact(piano_model):
+    """Catching on the back face 5 cm below the top while the piano turns 84 deg: a ball keeping the
+    orientation of position-only IK rolls centimetres along the face (stages.execute's rolling
+    shift), one turned with the object (trajectory.ik_follow) not up the face; both reach the targets."""
+    from stages import trajectory
+    from stages.robot import load_robot
+    from stages.scene import load_scene
+
+    model, tables = piano_model
+    scene = load_scene(REPO / "data" / "scenes" / "exp3_obstacle.json")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), scene.robot.eef_links)
+    X, _, e = _upright_and_back_edge(model)
+    X = se3.make_transform(np.eye(3), [-0.05, 0.14, 0.0]) @ X  # exp3's start: the right arm reaches the back
+    roll = trajectory.roll_segments(model, X, *model.edges[e])
+    Xs = roll.poses(np.radians(np.linspace(0.0, 84.0, 120)))
+    con = tables["contacts"]
+    p = np.array([0.0, 0.1025, 0.40])  # on the back face (y = 0.1025), 5 cm below the top
+    n = np.array([0.0, 1.0, 0.0])
+    targets = se3.transform_points(Xs, p + scene.robot.ball_radius * n)
+    q0 = robot.ik("right", targets[:1]).q[0]
+    q_plain = trajectory._ik_path(robot, "right", targets, q0, 1)
+    q_follow, why = trajectory.ik_follow(robot, "right", targets, Xs, n, q0, 1)
+    assert why == "ok" and len(con["px"]) > 0
+    for q in (q_plain, q_follow):
+        assert np.linalg.norm(robot.eef_position("right", q) - targets, axis=1).max() < 1e-3
+    r = scene.robot.ball_radius
+    plain = np.linalg.norm(trajectory.rolling_shift(robot, "right", q_plain, Xs, n, r)[-1])
+    follow = trajectory.rolling_shift(robot, "right", q_follow, Xs, n, r)[-1]
+    assert plain > 0.03  # measured 3.8 cm, 3.5 of them up the face (z_O)
+    # Only the rotation about the turning axis (x of O) is followed: no roll up the face (z_O), nor off it.
+    assert abs(follow[2]) < 1e-3 and abs(follow[1]) < 1e-9

@@ -245,8 +245,25 @@ def test_ik_trajectory_follows_a_line_continuously(robot):
 def test_ik_trajectory_flags_a_jump(robot):
     arm = robot.arms["left"]
     p0 = robot.eef_position("left", arm.q_rest[None])[0]
-    res = robot.ik_trajectory("left", np.stack([p0, p0 + [0.0, -0.3, 0.0]]), arm.q_rest, max_joint_step=0.05)
-    assert res.reason[0] == "ok" and res.reason[1] == "joint_jump"
+    for batch in (False, True):  # the batched first try falls back to the step-by-step solve
+        res = robot.ik_trajectory("left", np.stack([p0, p0 + [0.0, -0.3, 0.0]]), arm.q_rest, max_joint_step=0.05,
+                                  batch=batch)
+        assert res.reason[0] == "ok" and res.reason[1] == "joint_jump"
+
+
+def test_ik_trajectory_batched_is_a_continuous_solution(robot):
+    arm = robot.arms["left"]
+    p0 = robot.eef_position("left", arm.q_rest[None])[0]
+    line = p0 + np.linspace(0.0, 1.0, 21)[:, None] * np.array([0.05, -0.08, -0.05])
+    res = robot.ik_trajectory("left", line, arm.q_rest, max_joint_step=0.2, batch=True)
+    assert res.q.shape == (21, 7) and res.ok.all()
+    assert np.max(np.abs(np.diff(np.vstack([arm.q_rest, res.q]), axis=0))) <= 0.2
+    np.testing.assert_allclose(robot.eef_position("left", res.q), line, atol=1e-3)
+    # An unreachable step: the same verdict as step by step.
+    far = np.vstack([line, p0 + [2.0, 0.0, 0.0]])
+    a, b = (robot.ik_trajectory("left", far, arm.q_rest, batch=x) for x in (False, True))
+    np.testing.assert_array_equal(a.reason, b.reason)
+    assert b.reason[-1] != "ok"
 
 
 # ----------------------------------------------------------------------------------------------------
