@@ -299,6 +299,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
                    compute_margin=False)
     holds_c = np.zeros((C, kmax), bool)
     holds_c[rows, cols] = res.stable
+    alpha_c = np.zeros((C, kmax))
+    alpha_c[rows, cols] = res.alpha
     holds = on & holds_c[cls]                                                      # (N, kmax)
     has = holds.any(axis=1)
     first = np.argmax(holds, axis=1)
@@ -306,7 +308,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     # Margins cost twelve LPs each: measure them on one pivot corner per grasp, the first that holds.
     mk, minv = np.unique(np.stack([cls[has], first[has]], axis=1), axis=0, return_inverse=True)
     m = evaluate(mass, com_c[mk[:, 0]], V_c[mk[:, 0], mk[:, 1]][:, None], None, eef_p[mk[:, 0]], eef_n[mk[:, 0]],
-                 None, L, prm, R_WD=X_c[mk[:, 0], :3, :3])
+                 None, L, prm, R_WD=X_c[mk[:, 0], :3, :3], alpha=alpha_c[mk[:, 0], mk[:, 1]])
     out["margin"][has] = m.margin[minv.reshape(-1)]
     out["stable"] = has & ~usp
     # USP: the object on the table's edge (its support face clipped to the table top) with both balls,

@@ -428,6 +428,22 @@ def test_invariant_under_rigid_motion_about_z():
         np.testing.assert_allclose(res.margin, base.margin, rtol=1e-6, atol=1e-9)
 
 
+def test_margins_from_a_given_alpha_equal_a_full_evaluation():
+    """The feasibility ray of a call without R_WD seeds the margins of a call with it."""
+    rng = np.random.default_rng(21)
+    for k, e in [(1, 2), (4, 2), (3, 1)]:
+        kw = random_scenes(rng, 40, k, e)
+        R = se3.rotation_about_axis(np.array([0.0, 0.0, 1.0]), rng.uniform(-np.pi, np.pi, 40))
+        full = evaluate(**kw, R_WD=R)
+        first = evaluate(**kw, compute_margin=False)
+        given = evaluate(**kw, R_WD=R, alpha=first.alpha)
+        np.testing.assert_array_equal(given.stable, full.stable)
+        np.testing.assert_array_equal(given.reason, full.reason)
+        assert given.stats["feasibility_lps"] == 0
+        # Same LPs from the same start; BLAS blocking may differ with the batch.
+        np.testing.assert_allclose(given.margin, full.margin, rtol=1e-9, atol=1e-12)
+
+
 def test_threaded_evaluation_equals_the_serial_one():
     # By path: bench/ is not a package on sys.path under the plain `pytest` entry point.
     spec = importlib.util.spec_from_file_location("bench_stability", REPO / "bench" / "bench_stability.py")
