@@ -208,6 +208,21 @@ def test_convex_parts_are_cached_under_the_mesh_hash(tmp_path):
 # Controller pieces
 
 
+def test_squeeze_acts_only_while_both_balls_hold_on_opposed_normals():
+    t = np.arange(0.0, 3.0, 0.05)
+    contact = np.stack([t < 2.0, (t > 0.5) & (t < 2.5)], axis=1)  # left 0-2 s, right 0.5-2.5 s
+    w = execute._contact_weights(t, contact, 0.3)
+    n = np.zeros((len(t), 2, 3))
+    n[:, 0], n[:, 1] = [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]  # antipodal
+    sq = execute._squeeze_weights(w, n)
+    assert np.array_equal(sq[:, 0], sq[:, 1])  # internal: equal on both sides
+    alone = contact[:, 0] ^ contact[:, 1]
+    assert np.all(sq[alone] == 0.0)  # a ball alone carries only its planned force
+    assert np.allclose(sq[(t > 0.9) & (t < 1.6), 0], 1.0)  # both held, ramps done
+    n[:, 1] = [1.0, 0.0, 0.0]  # perpendicular normals: no squeeze line
+    assert np.all(execute._squeeze_weights(w, n) == 0.0)
+
+
 def test_modal_gains_keep_stiffness_and_damp_critically_below_the_cap():
     m, k, zeta = 4.0, 5000.0, 0.7
     A = np.eye(6) / m  # a free point mass m (and unit rotational inertia scaled alike)
@@ -401,6 +416,9 @@ def test_obstacle_in_the_swept_path_is_reported(pivot_case):
     m = ex.metrics
     assert m["object_obstacle_contacts"] == ["obstacles[0]"]
     assert m["robot_obstacle_contacts"] == [] and m["collision"] and not m["success"]
+    # When: during the pivot (rows 2.6-10.1 s: approach 1 s, grip 0.6 s, tilt 2.5 s), as it swings out.
+    t_hit = m["collision_times"]["object_obstacle:obstacles[0]"]
+    assert 1.6 + PHASE < t_hit < 1.6 + 3 * PHASE
 
 
 @pytest.mark.slow
