@@ -86,7 +86,7 @@ def _grasp_geometry(tables, grasps, r):
 
 
 def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),
-                     batch: bool = False):
+                     touching=None, batch: bool = False):
     """IK and collisions along object trajectories with both balls on their contacts.
 
     Parameters
@@ -95,12 +95,14 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
     p_O, n_O : (E, 2, 3) contact points and outward normals (O) of the left and right ball.
     q0 : (E, 2, n) joint seeds at the first sample.
     active : which balls follow the object; an inactive arm stays at its seed.
+    touching : which balls may touch the object (default: the active ones).
     batch : solve the IK of all samples at once first (``Robot.ik_trajectory``; for few long motions).
 
     Returns ``ok (E,)``, ``reason (E,)`` (first failure), ``q (T, E, 2, n)``.
     """
     E, T = X_traj.shape[:2]
     q = np.repeat(q0[None], T, axis=0).copy()
+    touching = active if touching is None else touching
     reason = np.full(E, "ok", dtype=object)
     if E == 0:
         return np.zeros(0, bool), reason.astype(str), q
@@ -121,8 +123,7 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
         ql = q[:, live, 0].reshape(-1, q.shape[-1])
         qr = q[:, live, 1].reshape(-1, q.shape[-1])
         X = np.swapaxes(X_traj[live], 0, 1).reshape(-1, 4, 4)
-        touching = np.broadcast_to(np.asarray(active, bool), (len(ql), 2))
-        ok, why = collide(ql, qr, X, touching)
+        ok, why = collide(ql, qr, X, np.broadcast_to(np.asarray(touching, bool), (len(ql), 2)))
         ok = ok.reshape(T, len(live))
         why = why.reshape(T, len(live))
         first = np.argmax(~ok, axis=0)
@@ -308,7 +309,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's side
     of the object, largest lever arm first (``push_candidates`` per arm). Every candidate of every
     tumble is followed for ``push_angle`` of the rotation with IK from a fresh solution and checked
-    for collisions, the other arm at its rest posture, in one batch per arm.
+    for collisions, the other arm at its rest posture (its ball may meet the object: it is the one that
+    catches), in one batch per arm.
 
     Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left
     before right, then by lever arm), or ``(None, reason, None)`` with the most common failure.
@@ -356,7 +358,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
         p_O = np.repeat(pc[c][:, None], 2, axis=1)
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
-        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active)
+        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active,
+                                      touching=(True, True))  # the idle ball may meet the object: it catches
         status[sel] = why
         for i in np.flatnonzero(ok):
             q_path[sel[i]] = q[:, i, j]

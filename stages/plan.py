@@ -12,7 +12,10 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
   friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
   ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
-- **tumble**: the pusher's transit to its contact, and the push along the rotation.
+- **tumble**: the pusher's transit to its contact, and the push along the rotation. Into USP
+  (Fig. 18 b–f) the catcher first moves to its contact of the destination grasp while the object
+  still stands (``{catcher}_before``), and after the push the pusher moves to its own contact of that
+  grasp while the catcher holds (``{pusher}_after``): a regrasp in USP.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
 are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept
@@ -220,24 +223,32 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         return False, "no_pusher_contact", step, state
     c, q_push = found
     new = _State(dict(state.q), dict(state.normal), Xa)
+    catcher = "right" if pusher == "left" else "left"
+    into_usp = nodes["kind"][v] == "grasp"
+    transits = {}
+    if into_usp:  # the catcher first goes where the object will land on it (Fig. 18 b, c)
+        res = _transit(ctx, params, new, catcher, ctx.q_grasp[catcher][gv], None)
+        if res.status != "ok":
+            return False, res.status, step, state
+        new.q[catcher], new.normal[catcher] = res.path[-1], None
+        transits[f"{catcher}_before"] = res.path.tolist()
     res = _transit(ctx, params, new, pusher, q_push[0], se3.rotate_vectors(Xa, ctx.n_O[c]))
     if res.status != "ok":
         return False, res.status, step, state
+    transits[pusher] = res.path.tolist()
     new.q[pusher] = q_push[-1]
     new.normal[pusher] = None
     new.X_WO = Xb
-    step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit={pusher: res.path.tolist()})
-    if nodes["kind"][v] == "grasp":  # into USP: the catcher holds, then the pusher takes its contact
-        catcher = "right" if pusher == "left" else "left"
-        for arm in (catcher, pusher):
-            cg = ctx.contact(gv, arm)
-            n_goal = se3.rotate_vectors(Xb, ctx.n_O[cg])
-            res = _transit(ctx, params, new, arm, ctx.q_grasp[arm][gv], n_goal)
-            if res.status != "ok":
-                return False, res.status, step, state
-            new.q[arm], new.normal[arm] = res.path[-1], n_goal
-            step["transit"][f"{arm}_after"] = res.path.tolist()
-        step["grasp_to"] = gv
+    step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit=transits)
+    if into_usp:  # the catcher holds; the pusher takes its contact of the new grasp
+        new.normal[catcher] = se3.rotate_vectors(Xb, ctx.n_O[ctx.contact(gv, catcher)])
+        n_goal = se3.rotate_vectors(Xb, ctx.n_O[ctx.contact(gv, pusher)])
+        res = _transit(ctx, params, new, pusher, ctx.q_grasp[pusher][gv], n_goal)
+        if res.status != "ok":
+            return False, res.status, step, state
+        new.q[pusher], new.normal[pusher] = res.path[-1], n_goal
+        step["transit"][f"{pusher}_after"] = res.path.tolist()
+        step.update(grasp_to=gv, catcher=catcher)
     return True, "ok", step, new
 
 
@@ -302,6 +313,9 @@ def search(ctx: _Context, params: Params) -> dict:
             # A regrasp changes a grasp: the first grasp out of the start's free node is not one.
             counts["regrasp"] = sum(1 for s in steps if s["primitive"] == "regrasp" and s.get("arms")
                                     and s["node_from"] != start)
+            # Regrasps while one ball holds the object in USP: USP regrasp edges and tumbles into USP.
+            counts["usp_regrasp"] = sum(1 for s in steps if s["support"] == "USP" and (
+                s["primitive"] == "regrasp" and s.get("arms") or s["primitive"] == "tumble" and "grasp_to" in s))
             out = {"status": "partial" if partial else "ok", "steps": steps, "log": log, "cost": cost,
                    "counts": counts, "nodes": [int(n) for n in path]}
             if partial:

@@ -1,7 +1,7 @@
 """Object pose sampling on the table by pivoting and tumbling (§5.1, Fig. 7–9).
 
 Poses are not sampled at random: pivoting keeps a table vertex fixed, so the reachable poses form a
-lattice. From the start pose, breadth first, every pose is
+lattice. From the start pose, best first (below), every pose is
 
 - **pivoted** about each corner of its support polygon (the pivot vertex stays on the table) by
   ±θ_t about the vertical through that vertex (QS gait in SP; DS gait in USP, on the vertices that
@@ -21,6 +21,13 @@ tumble that reaches it, hits an obstacle, python-fcl). Poses closer than ``merge
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
 to rounding (e.g. +θ then −θ about one vertex), so that every link is an exact pivot or tumble.
 Every pivot or tumble between two kept poses is a link.
+
+Expansion order (our addition to §5.1): the lattice is capped at ``max_poses``. Pivots seldom
+return to a pose, so it grows like a tree, and breadth first over all poses a cap spends the poses
+on the start's placement: the placements a tumble reaches are hardly expanded past their landing,
+and a goal on another face is not reached. Each placement therefore keeps its own breadth-first
+queue and the placements take turns: the start's and the goal's alike, any other ``other_share``
+as often.
 
 Pivot corners: the support polygon of a curved foot has many hull vertices on its rim; vertices of a
 placement's support polygon closer than ``corner_cluster`` form one corner, represented by the vertex
@@ -54,13 +61,15 @@ class Params:
     merge_xy: float = 1e-4
     merge_yaw: float = 1e-4
     #: Goal insertion: lattice poses tried (nearest first), connections kept, largest pivot angle.
-    goal_candidates: int = 12
-    goal_connections: int = 3
+    goal_candidates: int = 40
+    goal_connections: int = 6
     goal_max_angle: float = np.radians(30.0)
     #: USP: the object rests on at least this much table (m, along its contact with the table) and
     #: its CoM lies at most this far beyond that contact (m), where one ball holds it.
     min_usp_edge: float = 0.05
     max_usp_overhang: float = 0.15
+    #: Expansions a placement other than the start's and the goal's gets per one of theirs.
+    other_share: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -121,7 +130,7 @@ def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
 
 def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: int, table_size, obstacles,
                  params: Params, goal: tuple[np.ndarray, int] | None = None) -> PoseSet:
-    """Breadth-first pose lattice from the start (see the module docstring).
+    """Pose lattice from the start (see the module docstring).
 
     ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m;
     ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
@@ -191,26 +200,41 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
         return i, True
 
     first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
-    queue = deque([first] if rows[first]["status"] == "ok" else [])
-    n_ok = len(queue)
-    while queue and n_ok < params.max_poses:  # graph search over at most max_poses poses
-        i = queue.popleft()
-        X, g = rows[i]["X"], rows[i]["g"]
-        for child in _successors(model, corners, X, g, half, params):
+    queues: dict[int, deque] = {}  # per placement, breadth first
+    expanded: dict[int, int] = {}
+    share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
+
+    def push(j: int) -> None:
+        queues.setdefault(rows[j]["g"], deque()).append(j)
+        expanded.setdefault(rows[j]["g"], 0)
+
+    if rows[first]["status"] == "ok":
+        push(first)
+    n_ok = len(queues)
+    while n_ok < params.max_poses:  # at most max_poses poses
+        open_ = [g for g in queues if queues[g]]
+        if not open_:
+            break
+        g = min(open_, key=lambda g: (expanded[g] / share.get(g, params.other_share), queues[g][0]))  # turns
+        i = queues[g].popleft()
+        expanded[g] += 1
+        for child in _successors(model, corners, rows[i]["X"], g, half, params):
             if n_ok >= params.max_poses:
                 break
             j, new = add(child[0], child[1], i, *child[2:])
             if new and rows[j]["status"] == "ok":
                 n_ok += 1
-                queue.append(j)
+                push(j)
     goal_id = -1 if goal is None else _insert_goal(model, corners, rows, add, *goal, params)
     return _to_pose_set(rows, links, goal_id)
 
 
 def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> int:
     """Join the goal pose to the lattice (§5.3): by up to three pivots from the nearest kept poses on
-    the goal's placement (``stages.connect``, the controllability of pivoting [18]). Returns the
-    goal's pose id, or -1 when no sequence of kept poses reaches it."""
+    the goal's placement (``stages.connect``, the controllability of pivoting [18]), first from the
+    nearest pose of each subtree (the poses pivoted from one tumble landing, or from the start), so
+    that every way onto the goal's placement gets its chance. Returns the goal's pose id, or -1 when
+    no sequence of kept poses reaches it."""
     goal, new = add(np.asarray(X_goal, dtype=float), int(g_goal), -1, "goal", -1, (-1, -1), 0.0)
     if not new or rows[goal]["status"] != "ok":
         return goal if rows[goal]["status"] == "ok" else -1
@@ -218,8 +242,20 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     cand = [i for i, r in enumerate(rows) if r["status"] == "ok" and r["g"] == g_goal and i != goal]
     cand.sort(key=lambda i: float(np.linalg.norm(se3.transform_points(rows[i]["X"], model.com)[:2] - c_goal)))
     ids = corners[g_goal]
+
+    def root(i: int) -> int:  # the start or the tumble landing whose pivots reached pose i
+        while rows[i]["primitive"] == "pivot":
+            i = rows[i]["parent"]
+        return i
+
+    firsts, seen = [], set()  # the nearest pose of each subtree first, then the nearest others
+    for i in cand:
+        if root(i) not in seen:
+            seen.add(root(i))
+            firsts.append(i)
+    cand = firsts[: params.goal_candidates] + [i for i in cand[: params.goal_candidates] if i not in firsts]
     joined = 0
-    for i in cand[: params.goal_candidates]:  # a dozen closed-form solves
+    for i in cand:  # a few dozen closed-form solves
         conn = connect.connect_poses(rows[i]["X"], X_goal, model.vertices[ids], connect.Params(
             max_angle=params.goal_max_angle))
         if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):

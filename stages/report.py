@@ -135,7 +135,7 @@ def write_report(build_root: str | Path, out: str | Path, scenes: list[str]) -> 
                          f"(goal error {_fmt(e.get('final_yaw_error_deg'), '.2f')}°)")
         if scene == "exp3_obstacle":
             usp = [i for i, s in enumerate(p.get("steps", [])) if s.get("support") == "USP"]
-            usp_regrasp = sum(1 for i in usp if p["steps"][i]["primitive"] == "regrasp")
+            usp_regrasp = c.get("usp_regrasp", 0)
             lines.append(f"- USP steps: {len(usp)}, regrasps in USP: {usp_regrasp}; object–obstacle contact in "
                          f"physics: {_fmt(e.get('object_obstacle_contacts'))}")
         t = r["timings"]

@@ -3,7 +3,8 @@
 Reads the scene and the analysis; writes
 
 - ``poses.parquet``: the pose lattice of ``stages.poses`` (pivoting by θ_t about support corners,
-  tumbling over support edges; SP and USP; rejected poses kept with their status),
+  tumbling over support edges; SP and USP; rejected poses kept with their status; the scene's
+  obstacles and the robot's base and torso are the obstacles),
 - ``pose_links.parquet``: the pivot and tumble links between kept poses,
 - ``grasps.parquet``: per kept pose, every contact pair (left ball on the pair's contact with the
   larger world y, right ball on the other) that passes the grasp refinement of §4.2–4.3, with both
@@ -39,7 +40,7 @@ from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot, make_collision_fn
-from stages.scene import PlacementSpec, Scene, load_scene
+from stages.scene import ObstacleGeometry, PlacementSpec, Scene, load_scene
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,14 @@ def placement_pose(spec: PlacementSpec, model: poses.ObjectModel, where: str) ->
         g = int(np.argmax(model.normals @ spec.down_unit))
     X = se3.make_transform(se3.rot_z(spec.yaw), np.array([spec.xy[0], spec.xy[1], 0.0])) @ model.X_TO[g]
     return X, g
+
+
+def trunk_obstacles(robot) -> list[ObstacleGeometry]:
+    """The robot's base and torso boxes as obstacles for the object: a pose must not reach into the
+    robot (the arms' own checks leave the object out of the trunk's)."""
+    st = robot.static
+    return [ObstacleGeometry(name=f"robot:{n}", kind="box", X_WOb=np.asarray(X, float), size=tuple(2.0 * h))
+            for n, X, h in zip(st.box_names, st.box_X_W, st.box_half, strict=True)]
 
 
 def make_scene_collision_fn(scene: Scene, robot, object_mesh):
@@ -296,11 +305,12 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
                       sp_margin=float(tables["placements"].meta["params"]["sp_margin"]),
                       corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge)
     Xg, gg = placement_pose(scene.goal, model, f"{scene.path}: goal")
-    ps = poses.sample_poses(model, X0, g0, scene.table.size, scene.obstacle_geometries(), pp, goal=(Xg, gg))
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    obstacles = list(scene.obstacle_geometries()) + trunk_obstacles(robot)
+    ps = poses.sample_poses(model, X0, g0, scene.table.size, obstacles, pp, goal=(Xg, gg))
     if ps.status[0] != "ok":
         raise InputError(f"{scene.path}: start: the start pose is {ps.status[0]} (placement {g0})")
     t1 = time.perf_counter()
-    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     collide = make_scene_collision_fn(scene, robot, tables["mesh"])
     rng = np.random.default_rng(pl.seed)
     grasps, rejects, timings = refine_grasps(scene, model, tables, ps, robot, collide, params, rng)

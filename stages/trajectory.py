@@ -39,7 +39,7 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
      0.1–0.2 s; a slow slide drags the object); the object then drops the rest of the way, planned
      as a free fall about the current axis (``stages.mpc.integrate_rotation`` with no force);
    - *hold* (into USP, Fig. 14): the catcher's contact is its contact of the destination grasp (the
-     plan's ``{catcher}_after`` transit ends there); it lowers the object into the USP pose and keeps
+     plan's ``{catcher}_before`` transit ends there); it lowers the object into the USP pose and keeps
      holding it while the pusher takes its own contact of that grasp (the plan's ``{pusher}_after``).
 
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
@@ -638,8 +638,8 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
     usp = "grasp_to" in step
     q_after = {pusher: q_push[-1], catcher: tl.q[catcher]}
-    if usp:  # the plan moves the catcher, then the pusher, onto the destination grasp
-        q_after[catcher] = np.asarray(step["transit"][f"{catcher}_after"][-1], dtype=float)
+    if usp:  # the plan moves the catcher onto the destination grasp before the push, the pusher after it
+        q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
         candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
     else:
         candidates = _catch_candidates(env, roll, P)

@@ -634,7 +634,7 @@ def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_anal
     """A 0.42 m table: on its back the piano's CoM lies 5 cm beyond the edge, a USP pose (Fig. 14).
     Into USP the plan names the destination grasp, whose catching ball holds the object alone; here
     that grasp is made by hand: the catcher under the overhang, on the back face, with the joints the
-    same tumble into SP ends its catch with (the plan's ``right_after`` transit ends there). The
+    same tumble into SP ends its catch with (the plan's ``right_before`` transit ends there). The
     catcher lowers the piano onto the table's edge and keeps holding it; the SP tumble, whose catcher
     backs off, lets it fall off the table."""
     import copy
@@ -659,7 +659,7 @@ def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_anal
     step = plan["steps"][0]
     catch = np.flatnonzero(np.asarray(cols_sp["phase"]) == "catch")[-1]
     step.update(support="USP", grasp_to=-1)
-    step["transit"]["right_after"] = [np.asarray(cols_sp["q_right"][catch]).tolist()]
+    step["transit"]["right_before"] = [np.asarray(cols_sp["q_right"][catch]).tolist()]
     info, cols, ex = run(plan)
     assert info["mode"] == "hold" and info["catch_contact"] == info_sp["catch_contact"]
     m = ex.metrics
@@ -669,4 +669,4 @@ def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_anal
     # The catcher still holds it at the end, on the contact the plan gave it.
     assert ex.log["right_touch"][-1] and np.asarray(cols["right_contact"])[-1]
     q_end = np.asarray(cols["q_right"][-1])
-    assert np.abs(q_end - step["transit"]["right_after"][-1]).max() < 1e-9
+    assert np.abs(q_end - step["transit"]["right_before"][-1]).max() < 1e-9

@@ -119,3 +119,36 @@ def test_links_join_kept_poses_and_duplicates_merge():
     ok = ps.status == "ok"
     assert len(np.unique(keys[ok], axis=0)) == ok.sum()
     assert len(ps.links) > ok.sum() - 1
+
+
+def test_the_goals_placement_is_expanded_past_its_tumble_landings():
+    """Each placement has its own queue: with a small cap, the goal's face (reached by one tumble)
+    still gets pivots of its own, and the goal is joined to them."""
+    model = box_model()
+    X0, g = upright(model)
+    side = int(np.argmax(model.normals @ np.array([1.0, 0, 0])))  # lying on the +x face
+    Xg = se3.make_transform(se3.rot_z(0.3), np.array([0.35, 0.05, 0.0])) @ model.X_TO[side]
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=80), goal=(Xg, side))
+    ok = ps.status == "ok"
+    on_side = ok & (ps.placement == side)
+    n_side, n_start = np.count_nonzero(on_side & (ps.primitive == "pivot")), np.count_nonzero(ok & (ps.placement == g))
+    assert n_side >= 10 and n_start >= 10
+    assert n_side >= n_start / 2  # breadth first over all poses, the goal's face got only its landings
+    assert ps.goal_id >= 0 and np.any(ps.links[:, 1] == ps.goal_id)
+
+
+def test_the_robots_trunk_is_an_obstacle_for_the_object():
+    from stages.robot import load_robot
+    from stages.sample import trunk_obstacles
+    from stages.scene import load_scene
+
+    scene = load_scene("data/scenes/default.json")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    model = box_model()
+    torso = next(ob for ob in trunk_obstacles(robot) if ob.name == "robot:torso_link")
+    front = torso.X_WOb[0, 3] + torso.size[0] / 2
+    X_in, g = upright(model, xy=(front, 0.0))  # half the box inside the torso's front face
+    X_out, _ = upright(model, xy=(front + BOX[0] / 2 + 0.01, 0.0))
+    for X, want in ((X_in, "obstacle"), (X_out, "ok")):
+        ps = poses.sample_poses(model, X, g, (4.0, 4.0), trunk_obstacles(robot), poses.Params(max_poses=1))
+        assert ps.status[0] == want
