@@ -33,8 +33,9 @@ the desired ``K = diag(kp, kp, kp, kr, kr, kr)`` mode by mode (:func:`_modal_gai
 ``0.5 / dt`` rad/s (the light wrist) are softened to that frequency: torques computed once per step
 from the state at its start cannot hold them stiffly (fixed gains diverge within 0.25 s). With the
 default gains the translational modes keep ``kp`` = 5,000 N/m. Joint torques are clipped to the URDF
-efforts. Where the plan has contact, ``x*`` is pushed ``w * squeeze`` inside the surface along the
-contact normal (``kp * squeeze`` = 25 N, the notes' 20-30 N) and ``F_plan`` is fed forward; ``w``
+efforts. Where the plan has both balls in contact, ``x*`` is pushed ``w_l w_r c * squeeze`` inside the
+surface along the contact normal (``kp * squeeze`` = 25 N, the notes' 20-30 N; ``c`` how far the two
+normals oppose, :func:`_squeeze_weights`: a ball alone must not push) and ``F_plan`` is fed forward; ``w``
 rises from 0 to 1 over ``Params.ramp_time`` after the flag turns on and falls back before it turns
 off (minimum-jerk), so contacts are made and broken smoothly. The contact normal is the direction from
 the planned ball centre to the nearest point of the mesh in the planned object pose. The torso joint
@@ -554,6 +555,17 @@ def _contact_weights(t: np.ndarray, contact: np.ndarray, ramp: float) -> np.ndar
     return w
 
 
+def _squeeze_weights(weight: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``(T, 2)`` weights of the squeeze: an internal force of the two balls, so only while both hold
+    (the product of their contact weights ``(T, 2)``) and as far as their inward normals ``(T, 2, 3)``
+    oppose each other. A ball alone on the object (the other arm on its way in a regrasp) would push
+    it across the table with the whole squeeze (on Exp. 1: 11 N against 13 N of table friction, the
+    piano slid 1.5 mm and turned 0.5 deg at each regrasp); it carries only its planned force."""
+    opposed = np.clip(-np.einsum("ti,ti->t", normals[:, 0], normals[:, 1]), 0.0, 1.0)
+    w = weight[:, 0] * weight[:, 1] * opposed
+    return np.stack([w, w], axis=1)
+
+
 def _contact_normals(mesh: trimesh.Trimesh, X_WO: np.ndarray, p_ball: np.ndarray,
                      contact: np.ndarray) -> np.ndarray:
     """Inward unit normals ``(T, 2, 3)`` (W) at the planned contacts, zero out of contact."""
@@ -681,7 +693,7 @@ def _angular_velocity(R: np.ndarray, dt: float) -> np.ndarray:
 
 def _make_targets(plan: Plan, R_plan: np.ndarray, normals: np.ndarray, params: Params) -> _Targets:
     weight = _contact_weights(plan.t, plan.contact, params.ramp_time)
-    x_row = plan.p_ball + (weight * params.squeeze)[..., None] * normals
+    x_row = plan.p_ball + (_squeeze_weights(weight, normals) * params.squeeze)[..., None] * normals
     f_row = weight[..., None] * plan.f_ball
     if params.ball_orientation == "object":
         R_row = _rotation_targets(plan.t, plan.X_WO, R_plan, plan.contact, params.unwind_time)
@@ -857,7 +869,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     ``max_penetration`` (m); ``max_ball_force`` (N); ``max_joint_error`` (rad); ``fell`` and
     ``fell_reason``; ``robot_table_contacts``, ``robot_obstacle_contacts``, ``robot_object_contacts``
     (links other than the balls), ``object_obstacle_contacts`` (sorted names); ``collision``;
-    ``torque_saturation`` (fraction of steps with a clipped joint torque); ``success``;
+    ``collision_times`` (``"<kind>:<name>"`` -> time in s of that pair's first contact, to find it in
+    the log); ``torque_saturation`` (fraction of steps with a clipped joint torque); ``success``;
     ``convex_parts``; ``perturbation`` (what ``randomize`` drew); ``steps``, ``duration`` (s).
     """
     wall0 = time.perf_counter()
@@ -913,6 +926,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
            "q": np.zeros((T, 2, n_arm)), "f_ball": np.zeros((T, 2)), "touch": np.zeros((T, 2), dtype=bool),
            "f_table": np.zeros(T), "pen": np.zeros(T), "sat": np.zeros(T, dtype=bool)}
     collisions = {"robot_table": set(), "robot_obstacle": set(), "robot_object": set(), "object_obstacle": set()}
+    first_hit: dict[str, float] = {}  # "kind:name" -> time (s) of the first contact
     images: list[np.ndarray] = []
     frame_rows = set(np.round(np.linspace(0, T - 1, frames)).astype(int).tolist()) if frames > 0 else set()
     quat_tgt = se3.quat_from_matrix(tg.R).tolist()  # (S, 2, 4) nested lists: fast scalar access
@@ -1008,20 +1022,25 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             if r in frame_rows:
                 images.append(_render(cid, params))
 
-        def check_collisions() -> None:
+        def check_collisions(t_now: float) -> None:
+            def hit(kind: str, name: str) -> None:
+                if name not in collisions[kind]:
+                    collisions[kind].add(name)
+                    first_hit.setdefault(f"{kind}:{name}", t_now)
+
             for c in p.getContactPoints(bodyA=body, physicsClientId=cid):
                 other = c[2]
                 if other == obj:
                     if c[3] not in balls:
-                        collisions["robot_object"].add(link_name.get(c[3], str(c[3])))
+                        hit("robot_object", link_name.get(c[3], str(c[3])))
                 elif other == table:
-                    collisions["robot_table"].add(link_name.get(c[3], str(c[3])))
+                    hit("robot_table", link_name.get(c[3], str(c[3])))
                 elif other in obstacles:
-                    collisions["robot_obstacle"].add(f"{link_name.get(c[3], str(c[3]))}/{obstacles[other]}")
+                    hit("robot_obstacle", f"{link_name.get(c[3], str(c[3]))}/{obstacles[other]}")
             if obstacles:
                 for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
                     if c[2] in obstacles:
-                        collisions["object_obstacle"].add(obstacles[c[2]])
+                        hit("object_obstacle", obstacles[c[2]])
 
         t_loop, c_loop = time.perf_counter(), time.process_time()
         states = p.getJointStates(body, movable, physicsClientId=cid)
@@ -1099,7 +1118,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             p.setJointMotorControlArray(body, all_arm, p.TORQUE_CONTROL, forces=clipped.ravel().tolist(),
                                         physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
-            check_collisions()
+            check_collisions(float(plan.t[0]) + j * dt)
             states = p.getJointStates(body, movable, physicsClientId=cid)
             if j % k == 0:
                 raw["sat"][j // k] = saturated
@@ -1108,6 +1127,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
 
     log = _make_log(plan, raw, X_PO, com_O, hull_O, sup_vertex, sup_start)
     metrics = _metrics(plan, log, X_WO_goal, com_O, scene, params, collisions)
+    metrics["collision_times"] = {k: round(v, 6) for k, v in sorted(first_hit.items())}
     metrics.update({
         "torque_saturation": saturated_steps / max(S - 1, 1),
         "convex_parts": len(parts),

@@ -9,8 +9,9 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   moving ball is off the object, the other keeps its contact when it had one;
 - **pivot**: the tilt → rotate → lower reference about the support vertex, tracked by the MPC
   (``stages.mpc.run_pivot_mpc``); the object pose is the MPC's simulated pose, the ball centres
-  follow it (``p_i(t) = X_WO(t) p_Oi`` moved out by the ball radius) and batched IK gives the joints
-  along the way, seeded step by step (no branch flips);
+  follow it (``p_i(t) = X_WO(t) p_Oi`` moved out by the ball radius) and the joints are those of the
+  planner's own IK check of the pivot (:func:`pivot_joints`), so that they end where the plan's next
+  transit starts;
 - **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
   PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
 - **hold**: a short pause before and after each contact change.
@@ -172,6 +173,36 @@ def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int, c
     if not check:
         return q
     return q, ("ok" if res.ok.all() else str(res.reason[np.argmin(res.ok)]))
+
+
+def pivot_joints(robot, X_ref: np.ndarray, p_O: np.ndarray, n_O: np.ndarray, q0: np.ndarray, r: float,
+                 dt: float, sample_time: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Joint paths ``(T, n)`` of the left and right arm along a pivot's reference poses ``X_ref (T, 4, 4)``.
+
+    The same IK as ``pivot plan``'s check of the pivot (``stages.plan``: ``stages.graph.check_arm_motion``
+    on every ``sample_time`` s of the reference and the last row, ``Robot.ik_trajectory(batch=True)``
+    from ``q0 (2, n)``), joints interpolated linearly in between. The plan's next transit of an arm
+    starts from the configuration that check ended in; any other IK (step-by-step seeding, other
+    samples) ends elsewhere on the arm's self-motion and the transit would begin with a jump of the
+    planned joints (0.7 rad of the SDA5F's joint 5 on Exp. 1, which the arm cannot follow). The ball
+    centres of the dense rows (the MPC's poses, within a millimetre of the reference) are the
+    impedance's targets in execution; these joints are its posture. ``p_O, n_O (2, 3)``: contacts and
+    outward normals (O) of the left and right ball; ``r`` the ball radius (m).
+    """
+    gp = GraphParams()
+    T = len(X_ref)
+    every = max(1, int(round(sample_time / dt)))
+    sub = np.unique(np.r_[np.arange(0, T, every), T - 1])
+    X = X_ref[sub][None]  # (1, K, 4, 4), laid out as the planner's batch of one motion
+    out = []
+    for k, arm in enumerate(ARMS):
+        ball_O = (p_O[k] + r * n_O[k])[None]
+        targets = np.einsum("etij,ej->tei", X[..., :3, :3], ball_O) + np.swapaxes(X[..., :3, 3], 0, 1)
+        res = robot.ik_trajectory(arm, targets, np.asarray(q0[k], dtype=float)[None], tol=gp.ik_tol,
+                                  max_joint_step=gp.max_joint_step, batch=True)
+        q = res.q[:, 0]
+        out.append(np.stack([np.interp(np.arange(T), sub, q[:, j]) for j in range(q.shape[1])], axis=1))
+    return out[0], out[1]
 
 
 def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, q0: np.ndarray,
@@ -824,8 +855,8 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
                 break
             X = res.X_WO
             targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
-            ql = _ik_path(robot, "left", targets[:, 0], tl.q["left"], params.ik_every)
-            qr = _ik_path(robot, "right", targets[:, 1], tl.q["right"], params.ik_every)
+            ql, qr = pivot_joints(robot, Xr, p_O[[cl, cr]], n_O[[cl, cr]], np.stack([tl.q["left"], tl.q["right"]]),
+                                  r, dt)
             T = len(t)
             tl.add(k, "pivot", phase, X, X_ref=Xr, X_start=X_from, p={"left": targets[:, 0], "right": targets[:, 1]},
                    f={"left": res.f_eef_W[:, 0], "right": res.f_eef_W[:, 1]}, q={"left": ql, "right": qr},
@@ -848,6 +879,13 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     cols = tl.columns()
     stats["mpc_iters"] = float(np.median(stats["mpc_iters"])) if stats["mpc_iters"] else 0.0
     stats["steps"] = int(len(cols.get("step", [])))
+    # The planned joints must be a path the arms can follow: the largest row-to-row joint speed as a
+    # fraction of the joint's velocity limit (transits run at vel_scale; a value above 1 is a jump).
+    ratio = 0.0
+    for a in ARMS if cols else ():
+        speed = np.abs(np.diff(np.stack(cols[f"q_{a}"]), axis=0)) / dt
+        ratio = max(ratio, float(np.max(speed / robot.arm(a).velocity, initial=0.0)))
+    stats["max_joint_speed_ratio"] = ratio
     stats["duration"] = float(cols["t"][-1]) if cols else 0.0
     return cols, stats
 

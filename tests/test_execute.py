@@ -128,7 +128,7 @@ def make_pivot_case() -> dict:
     prims = np.concatenate([[pt[5]] * len(pt[0]) for pt in parts])
     q = _joint_paths(robot, balls)
     return {"scene": scene, "mesh": mesh, "mass": mass, "com_O": com_O, "inertia_O": I_O, "X0": X0, "X1": X1,
-            "p0": p0, "ball_O": ball_O, "robot": robot, "mpc": res,
+            "p0": p0, "ball_O": ball_O, "p_c": p_c, "n_O": n_out_O, "X_ref": X_ref, "robot": robot, "mpc": res,
             "traj": _table(X, balls, flags, forces, q, kinds, prims)}
 
 
@@ -208,6 +208,21 @@ def test_convex_parts_are_cached_under_the_mesh_hash(tmp_path):
 # Controller pieces
 
 
+def test_squeeze_acts_only_while_both_balls_hold_on_opposed_normals():
+    t = np.arange(0.0, 3.0, 0.05)
+    contact = np.stack([t < 2.0, (t > 0.5) & (t < 2.5)], axis=1)  # left 0-2 s, right 0.5-2.5 s
+    w = execute._contact_weights(t, contact, 0.3)
+    n = np.zeros((len(t), 2, 3))
+    n[:, 0], n[:, 1] = [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]  # antipodal
+    sq = execute._squeeze_weights(w, n)
+    assert np.array_equal(sq[:, 0], sq[:, 1])  # internal: equal on both sides
+    alone = contact[:, 0] ^ contact[:, 1]
+    assert np.all(sq[alone] == 0.0)  # a ball alone carries only its planned force
+    assert np.allclose(sq[(t > 0.9) & (t < 1.6), 0], 1.0)  # both held, ramps done
+    n[:, 1] = [1.0, 0.0, 0.0]  # perpendicular normals: no squeeze line
+    assert np.all(execute._squeeze_weights(w, n) == 0.0)
+
+
 def test_modal_gains_keep_stiffness_and_damp_critically_below_the_cap():
     m, k, zeta = 4.0, 5000.0, 0.7
     A = np.eye(6) / m  # a free point mass m (and unit rotational inertia scaled alike)
@@ -230,6 +245,36 @@ def test_quat_error_is_the_world_rotation_vector_of_target_times_current_inverse
         a, b = Rotation.random(random_state=rng), Rotation.random(random_state=rng)
         np.testing.assert_allclose(execute._quat_error(a.as_quat(), b.as_quat()), (a * b.inv()).as_rotvec(),
                                    atol=1e-12)
+
+
+def test_pivot_joints_end_where_the_planners_check_of_the_pivot_ends(pivot_case):
+    """The MPC stage's pivot joints are the planner's (stages.plan checks a pivot with
+    graph.check_arm_motion, batched, every 0.1 s): the plan's next transit starts from that check's
+    last configuration, so any other IK would start the transit with a jump of the planned joints."""
+    from stages import graph, trajectory
+
+    c = pivot_case
+    robot, X_ref, r = c["robot"], c["X_ref"], c["scene"].robot.ball_radius
+    q0 = np.stack([robot.ik(a, se3.transform_points(X_ref[:1], c["ball_O"][k])).q[0]
+                   for k, a in enumerate(("left", "right"))])
+    dt = ROW_DT
+    every = max(1, int(round(0.1 / dt)))
+    sub = np.unique(np.r_[np.arange(0, len(X_ref), every), len(X_ref) - 1])
+
+    def no_collisions(ql, qr, X, touching):
+        return np.ones(len(ql), bool), np.full(len(ql), "ok")
+
+    ok, why, q_plan = graph.check_arm_motion(robot, no_collisions, X_ref[sub][None], c["p_c"][None], c["n_O"][None],
+                                             q0[None], r, graph.Params(), batch=True)
+    assert ok[0], why
+    ql, qr = trajectory.pivot_joints(robot, X_ref, c["p_c"], c["n_O"], q0, r, dt)
+    assert ql.shape == qr.shape == (len(X_ref), robot.arm("left").dof)
+    np.testing.assert_allclose(ql[sub], q_plan[:, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(qr[sub], q_plan[:, 0, 1], atol=1e-12)
+    # Between the samples the balls stay on their targets (the pivot is slow): within a millimetre.
+    for k, (a, q) in enumerate((("left", ql), ("right", qr))):
+        err = np.linalg.norm(robot.eef_position(a, q) - se3.transform_points(X_ref, c["ball_O"][k]), axis=1)
+        assert err.max() < 1e-3
 
 
 def test_check_trajectory_rejects_missing_columns_and_rows_off_the_step(pivot_case):
@@ -371,6 +416,9 @@ def test_obstacle_in_the_swept_path_is_reported(pivot_case):
     m = ex.metrics
     assert m["object_obstacle_contacts"] == ["obstacles[0]"]
     assert m["robot_obstacle_contacts"] == [] and m["collision"] and not m["success"]
+    # When: during the pivot (rows 2.6-10.1 s: approach 1 s, grip 0.6 s, tilt 2.5 s), as it swings out.
+    t_hit = m["collision_times"]["object_obstacle:obstacles[0]"]
+    assert 1.6 + PHASE < t_hit < 1.6 + 3 * PHASE
 
 
 @pytest.mark.slow
