@@ -305,12 +305,14 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     has = holds.any(axis=1)
     first = np.argmax(holds, axis=1)
     out["pivot_vertices"] = [ids[i][holds[i]] for i in range(N)]
-    # Margins cost twelve LPs each: measure them on one pivot corner per grasp, the first that holds.
-    mk, minv = np.unique(np.stack([cls[has], first[has]], axis=1), axis=0, return_inverse=True)
+    # Margins cost twelve LPs each: measure them on one pivot corner per SP grasp, the first that holds
+    # (a USP grasp records its margin of holding, below).
+    sp = has & ~usp
+    mk, minv = np.unique(np.stack([cls[sp], first[sp]], axis=1), axis=0, return_inverse=True)
     m = evaluate(mass, com_c[mk[:, 0]], V_c[mk[:, 0], mk[:, 1]][:, None], None, eef_p[mk[:, 0]], eef_n[mk[:, 0]],
                  None, L, prm, R_WD=X_c[mk[:, 0], :3, :3], alpha=alpha_c[mk[:, 0], mk[:, 1]])
-    out["margin"][has] = m.margin[minv.reshape(-1)]
-    out["stable"] = has & ~usp
+    out["margin"][sp] = m.margin[minv.reshape(-1)]
+    out["stable"] = sp
     # USP: the object on the table's edge (its support face clipped to the table top) with both balls,
     # then with each ball alone.
     us = np.flatnonzero(usp)
