@@ -118,9 +118,9 @@ def test_exp1_without_regrasp_ends_short_along_x(builds):
 
 @pytest.mark.xfail(strict=False, reason="without regrasping this planner ends 7-25 cm short, not Table 2's "
                                         "-12.5 cm: where the one-grasp gait stops depends on the pose lattice and "
-                                        "the grasps the sampler keeps (-25 cm breadth first; by placement -12.7 cm "
-                                        "without the robot's trunk as an obstacle, -7.4 cm with it, -24.8 cm with "
-                                        "pivot margins for SP grasps only)")
+                                        "the grasps the sampler keeps (-25 cm breadth first; by placement -12.7 cm, "
+                                        "-7.4 cm with the robot's trunk as an obstacle, -24.8 cm with the grasp "
+                                        "refinement's new collision retries)")
 def test_exp1_error_as_in_table_2(builds):
     err = builds.plan("exp1_reach", no_regrasp=True).get("remaining_error", {"x": 0.0})
     assert -0.15 <= err["x"] <= -0.10
