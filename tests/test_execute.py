@@ -309,6 +309,12 @@ def _hold_table(case, seconds=2.0):
                   [np.repeat(qa[:1], T, 0) for qa in q], ["hold"] * T, [0] * T, dt=1.0 / 240.0)
 
 
+def test_object_orientation_needs_the_pose_task(pivot_case):
+    p = pivot_case["params"]
+    with pytest.raises(InputError, match="ball_orientation 'object' needs task 'pose'"):
+        _run(pivot_case, params=execute.Params(ball_orientation="object", task="position", cache_dir=p.cache_dir))
+
+
 def test_hold_with_the_arms_away_keeps_the_object_still_and_succeeds(pivot_case, tmp_path):
     """Also builds a cylinder and a mesh obstacle at the far end of the table: no false contacts."""
     prism = tmp_path / "prism.stl"
