@@ -202,8 +202,9 @@ class Params:
     force_limit : bound (N) on the commanded Cartesian force at each ball.
     clip_effort : clip joint torques to the URDF's ``effort`` limits.
     model_period : physics steps between refreshes of the arms' dynamics model: mass matrix, task
-        inertia, modal gains and null-space map (60 Hz by default; the arms turn < 0.01 rad in that
-        time). The Jacobian, gravity, Coriolis and the errors are refreshed every step.
+        inertia, task gains and null-space map (60 Hz by default; the arms turn < 0.01 rad in that
+        time); the posture gains, which depend on the mass matrix alone, every 4 refreshes. The
+        Jacobian, gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
     fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
@@ -1073,18 +1074,20 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         delta_O = np.zeros((2, 3))  # rolling correction of each ball's target, object frame
         r_ball, dt, roll = scene.robot.ball_radius, params.dt, params.roll_compensation
         w_o, normals_s, contact_s = tg.w_o.tolist(), tg.n.tolist(), tg.contact.tolist()
+        compliance_s = tg.compliance.tolist()
+        eye_n = np.eye(n_arm)
         for j in range(1, S):
             # Torques for the step from j - 1 to j, from the state at j - 1 and the targets at j.
-            q = np.array([s[0] for s in states])
-            qd = np.array([s[1] for s in states])
-            ql, qdl = q.tolist(), qd.tolist()
+            ql, qdl = [s[0] for s in states], [s[1] for s in states]
+            q, qd = np.array(ql), np.array(qdl)
             ls = p.getLinkStates(body, balls, computeLinkVelocity=1, computeForwardKinematics=1,
                                  physicsClientId=cid)
             h_all = np.asarray(p.calculateInverseDynamics(body, ql, qdl, zeros, physicsClientId=cid))
             JL = p.calculateJacobian(body, balls[0], ball_local[0], ql, qdl, zeros, physicsClientId=cid)
             JR = p.calculateJacobian(body, balls[1], ball_local[1], ql, qdl, zeros, physicsClientId=cid)
-            J = np.fromiter(itertools.chain.from_iterable(JL[0] + JL[1] + JR[0] + JR[1]), float,
-                            12 * n_mov).reshape(2, 6, n_mov)[i_arm, i_row, i_col]  # (2, 6, n)
+            rows = JL[0] + JL[1] + JR[0] + JR[1] if nt == 6 else JL[0] + JR[0]
+            J = np.fromiter(itertools.chain.from_iterable(rows), float,
+                            2 * nt * n_mov).reshape(2, nt, n_mov)[i_arm, i_row, i_col]  # (2, nt, n)
             x_t, v_t = tg.x[j], tg.v[j]
             if roll and (contact_s[j][0] or contact_s[j][1]):
                 # No slip at the contact: the centre must move by (w_o - w_ball) x r n relative to the
@@ -1112,35 +1115,44 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             JT = J.transpose(0, 2, 1)
             if (j - 1) % model_period == 0:
                 # The arm's dynamics model, refreshed every model_period steps (it changes slowly):
-                # mass matrix, task inertia, modal gains and the null-space map Jbar^T = Lam J M^-1.
+                # mass matrix, task inertia, the task and posture gains (dense, from their modes) and
+                # the null-space map N = I - J^T Jbar^T (Jbar^T = Lam J M^-1), applied to the posture.
                 M_all = np.fromiter(itertools.chain.from_iterable(p.calculateMassMatrix(body, ql, physicsClientId=cid)),
                                     float, n_mov * n_mov).reshape(n_mov, n_mov)
                 M_arm = M_all[m_row, m_col]  # (2, n, n)
-                MJ = np.linalg.inv(M_arm) @ JT  # (2, n, 6)
-                A = J @ MJ  # (2, 6, 6): the inverse task inertia
-                U, k_m, d_m = _modal_gains(sqrt_k, A, params.damping_ratio, w_max)
-                Ut = U.transpose(0, 2, 1)
-                JbarT = np.linalg.solve(A + reg, MJ.transpose(0, 2, 1))  # (2, 6, n)
-                Uq, kq_m, dq_m = _modal_gains(sqrt_kq, np.linalg.inv(M_arm), params.damping_ratio, w_max)
-                Uqt = Uq.transpose(0, 2, 1)
-            modal = k_m * (Ut @ e[:, :, None])[:, :, 0] + d_m * (Ut @ e_dot[:, :, None])[:, :, 0]
-            W = (U @ modal[:, :, None])[:, :, 0]
+                M_inv = np.linalg.inv(M_arm)
+                MJ = M_inv @ JT  # (2, n, nt)
+                A = J @ MJ  # (2, nt, nt): the inverse task inertia
+                K_task, D_task = _dense_gains(*_modal_gains(sqrt_k, A, params.damping_ratio, w_max))
+                JbarT = np.linalg.solve(A + reg, MJ.transpose(0, 2, 1))  # (2, nt, n)
+                N = eye_n - JT @ JbarT
+                if (j - 1) % (4 * model_period) == 0:  # the posture's gains depend on M alone: slower still
+                    K_q, D_q = _dense_gains(*_modal_gains(sqrt_kq, M_inv, params.damping_ratio, w_max))
+                NK_q, ND_q = N @ K_q, N @ D_q
+            W = (K_task @ e[:, :, None] + D_task @ e_dot[:, :, None])[:, :, 0]
             W[:, :3] += tg.f[j]
             for a in range(2):
                 fx, fy, fz = W[a, :3].tolist()
                 nF = math.sqrt(fx * fx + fy * fy + fz * fz)
                 if nF > params.force_limit:
                     W[a, :3] *= params.force_limit / nF
-            # Null space: N tau0 = tau0 - J^T Jbar^T tau0.
+            # The posture in the null space: N (Kq e_q + Dq e_q').
             e_q, e_qd = tg.q[j] - q[cols2], tg.qd[j] - qd[cols2]
-            tau0 = (Uq @ (kq_m * (Uqt @ e_q[:, :, None])[:, :, 0]
-                          + dq_m * (Uqt @ e_qd[:, :, None])[:, :, 0])[:, :, None])[:, :, 0]
-            tau_imp = (JT @ (W - (JbarT @ tau0[:, :, None])[:, :, 0])[:, :, None])[:, :, 0] + tau0 + h_all[cols2]
-            # Free motion: computed-torque joint tracking, blended with the impedance around contacts.
-            acc = tg.qdd[j] + params.kj * (tg.q[j] - q[cols2]) + params.dj * (tg.qd[j] - qd[cols2])
-            tau_joint = (M_arm @ acc[:, :, None])[:, :, 0] + h_all[cols2]
-            c = tg.compliance[j][:, None]
-            tau = c * tau_imp + (1.0 - c) * tau_joint
+            h = h_all[cols2]
+            c0, c1 = compliance_s[j]
+            if c0 > 0.0 or c1 > 0.0:
+                tau_imp = (JT @ W[:, :, None] + NK_q @ e_q[:, :, None] + ND_q @ e_qd[:, :, None])[:, :, 0] + h
+            if c0 < 1.0 or c1 < 1.0:
+                # Free motion: computed-torque joint tracking, blended with the impedance around contacts.
+                acc = tg.qdd[j] + params.kj * e_q + params.dj * e_qd
+                tau_joint = (M_arm @ acc[:, :, None])[:, :, 0] + h
+            if c0 == 1.0 and c1 == 1.0:
+                tau = tau_imp
+            elif c0 == 0.0 and c1 == 0.0:
+                tau = tau_joint
+            else:
+                c = tg.compliance[j][:, None]
+                tau = c * tau_imp + (1.0 - c) * tau_joint
             clipped = np.clip(tau, -effort, effort)
             saturated = bool(np.any(clipped != tau))
             saturated_steps += saturated
