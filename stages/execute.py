@@ -1,7 +1,9 @@
 """Execution in physics (DESIGN.md, Execution; paper §6): a planned trajectory run in PyBullet.
 
 The world is the scene's table (a box from the floor to the top at z = 0), its obstacles, the robot
-from its URDF on its base pose (fixed base) and the object as a free rigid body. The robot follows
+from its URDF on its base pose (fixed base; its cylinders loaded as exact cylinders,
+``URDF_USE_IMPLICIT_CYLINDER``: PyBullet's default convex-mesh cylinder with its 1 mm margin makes the
+8 mm sticks 1 mm fatter than the URDF and the planner say) and the object as a free rigid body. The robot follows
 the plan with **compliance at the ball** (notes/pybullet-pivoting.md: stiff position control slides
 the pivot vertex or lifts the object); the object moves only through its contacts with the balls and
 the table: it is placed once at the plan's first pose and never reset, teleported or constrained.
@@ -19,21 +21,35 @@ the planned contact flags ``left_contact``, ``right_contact``, the planned ball 
 Controller (every physics step)
 -------------------------------
 Both arms run in ``TORQUE_CONTROL`` (their velocity motors disabled) with an operational-space
-impedance of the ball link: position of its centre and orientation, 6 task coordinates::
+impedance of the ball's centre (``Params.task = "position"``, 3 task coordinates) and the planned
+joints as a posture in its null space::
 
     tau = J^T W + N (Kq (q* - q) + Dq (q*' - q')) + h(q, q')
-    W   = K_eff e + D e',   e = [x* - x ; log(R* R^T)],   W[:3] += w F_plan,   |W[:3]| <= force_limit
+    W   = K_eff e + D e',   e = x* - x,   W += w F_plan,   |W| <= force_limit
 
-``J`` is the 6 x n geometric Jacobian of the ball link, ``h`` gravity and Coriolis torques
+``J`` is the 3 x n Jacobian of the ball centre, ``h`` gravity and Coriolis torques
 (``calculateInverseDynamics``), ``N = I - J^T Jbar^T`` the dynamically consistent null-space
 projector (``Jbar = M^-1 J^T Lam``, ``Lam = (J M^-1 J^T)^-1``, ``M`` from ``calculateMassMatrix``), so
-the joint PD towards the planned joints only uses the arm's redundancy. ``K_eff`` and ``D`` come from
-the desired ``K = diag(kp, kp, kp, kr, kr, kr)`` mode by mode (:func:`_modal_gains`): every mode of
-``(K, Lam)`` is damped at ``damping_ratio`` (the notes' ``D ~ 1.4 sqrt(K m)``) and modes faster than
-``0.5 / dt`` rad/s (the light wrist) are softened to that frequency: torques computed once per step
-from the state at its start cannot hold them stiffly (fixed gains diverge within 0.25 s). With the
-default gains the translational modes keep ``kp`` = 5,000 N/m. Joint torques are clipped to the URDF
-efforts. Where the plan has both balls in contact, ``x*`` is pushed ``w_l w_r c * squeeze`` inside the
+the joint PD towards the planned joints only uses the arm's redundancy, which holds the ball's
+orientation (the planned joints' orientation) too. ``K_eff`` and ``D`` come from the desired
+``K = kp I`` mode by mode (:func:`_modal_gains`): every mode of ``(K, Lam)`` is damped at
+``damping_ratio`` (the notes' ``D ~ 1.4 sqrt(K m)``) and modes faster than ``0.5 / dt`` rad/s are
+softened to that frequency: torques computed once per step from the state at its start cannot hold
+them stiffly (fixed gains diverge within 0.25 s). The posture gains ``Kq, Dq`` are modal in the same
+way, for ``kq I`` against the arm's mass matrix ``M``: a fixed joint damping (formerly 2 N m s/rad)
+is an explicit-step instability on the light wrist joints, which the null space of a 3-D task
+contains. With the default gains the translational modes keep ``kp`` = 5,000 N/m.
+
+``task = "pose"`` adds the ball's orientation to the task (6 coordinates, ``e = [x* - x ;
+log(R* R^T)]``, ``K = diag(kp, kp, kp, kr, kr, kr)``; the null space is then the elbow's self-motion
+alone). It is not the default: near the wrist singularity (the SDA5F's joint 6 near 0, joints 5 and
+7 aligned) the 6-D task is nearly singular, and the joint motion along its weak direction counts as
+task, so the null-space posture cannot hold it while the orientation stiffness barely does: on
+Exp. 1 the left arm's joints 5 and 7 ran 1.1 rad from the plan and its elbow (link 3) hit the table
+(0.27-0.38 rad on the same pivot with continuous plan joints, against 0.07 rad with the 3-D task).
+Joint torques are clipped to the URDF efforts.
+
+Where the plan has both balls in contact, ``x*`` is pushed ``w_l w_r c * squeeze`` inside the
 surface along the contact normal (``kp * squeeze`` = 25 N, the notes' 20-30 N; ``c`` how far the two
 normals oppose, :func:`_squeeze_weights`: a ball alone must not push) and ``F_plan`` is fed forward; ``w``
 rises from 0 to 1 over ``Params.ramp_time`` after the flag turns on and falls back before it turns
@@ -164,18 +180,21 @@ class Params:
 
     dt : physics step (s); trajectory rows must be a whole multiple of it apart.
     solver_iterations : Bullet's constraint-solver iterations per step (notes: barely matters).
+    task : "position": the impedance holds the ball centre (3 task coordinates) and the planned
+        joints, the ball's orientation with them, are a posture in its null space; "pose": the ball's
+        orientation is a task too (6 coordinates, stiffness ``kr``). See the module docstring.
     kp : translational stiffness at the ball (N/m; notes: 3,000-10,000 N/m).
-    kr : rotational stiffness of the ball orientation (N m/rad).
-    damping_ratio : damping of every task mode (notes: D ~ 1.4 sqrt(K m), i.e. 0.7).
-    max_frequency : task modes stiffer than this natural frequency (rad/s) are softened to it
-        (0: ``0.5 / dt``), see :func:`_modal_gains`.
-    kq, dq : null-space joint stiffness (N m/rad) and damping (N m s/rad) towards the planned joints.
+    kr : rotational stiffness of the ball orientation (N m/rad; task "pose").
+    damping_ratio : damping of every task and posture mode (notes: D ~ 1.4 sqrt(K m), i.e. 0.7).
+    max_frequency : task and posture modes stiffer than this natural frequency (rad/s) are softened
+        to it (0: ``0.5 / dt``), see :func:`_modal_gains`.
+    kq : null-space joint stiffness (N m/rad) towards the planned joints, damped mode by mode.
     kj, dj : joint tracking gains of free motion (1/s^2, 1/s: computed torque, 30 rad/s, damping 0.7).
     squeeze : depth (m) of the contact target inside the surface; ``kp * squeeze`` is the squeeze force.
     ramp_time : time (s) over which a contact's squeeze and force feed-forward rise and fall.
     ball_orientation : "plan": the ball keeps the orientation of the planned joints and its target
-        is corrected for rolling (module docstring); "object": the ball's orientation follows the
-        object's rotation over each contact.
+        is corrected for rolling (module docstring); "object" (task "pose" only): the ball's
+        orientation follows the object's rotation over each contact.
     roll_compensation : shift each ball's target by the rolling its rotation relative to the object
         causes (off: the notes' (L + 2r) / L over-rotation returns, for measuring it).
     unwind_time : longest time (s) over which, after a contact ends, the rolling correction fades
@@ -183,8 +202,9 @@ class Params:
     force_limit : bound (N) on the commanded Cartesian force at each ball.
     clip_effort : clip joint torques to the URDF's ``effort`` limits.
     model_period : physics steps between refreshes of the arms' dynamics model: mass matrix, task
-        inertia, modal gains and null-space map (60 Hz by default; the arms turn < 0.01 rad in that
-        time). The Jacobian, gravity, Coriolis and the errors are refreshed every step.
+        inertia, task gains and null-space map (60 Hz by default; the arms turn < 0.01 rad in that
+        time); the posture gains, which depend on the mass matrix alone, every 4 refreshes. The
+        Jacobian, gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
     fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
@@ -207,11 +227,11 @@ class Params:
     kq: float = 20.0
     kj: float = 900.0
     dj: float = 42.0
-    dq: float = 2.0
     squeeze: float = 0.005
     ramp_time: float = 0.3
     unwind_time: float = 2.0
     ball_orientation: str = "plan"
+    task: str = "position"
     roll_compensation: bool = True
     force_limit: float = 80.0
     clip_effort: bool = True
@@ -883,9 +903,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         raise InputError("simulate: X_WO_goal must be a finite (4, 4) pose")
     if np.linalg.eigvalsh(0.5 * (inertia_O + inertia_O.T)).min() <= 0:
         raise InputError("simulate: inertia_O must be positive definite")
-    if params.ball_orientation not in ("plan", "object") or not params.dt > 0 or frames < 0:
-        raise InputError(f"simulate: invalid parameters (ball_orientation {params.ball_orientation!r}, "
-                         f"dt {params.dt}, frames {frames})")
+    if params.ball_orientation not in ("plan", "object") or params.task not in ("position", "pose") \
+            or (params.ball_orientation == "object" and params.task != "pose") or not params.dt > 0 or frames < 0:
+        raise InputError(f"simulate: invalid parameters (ball_orientation {params.ball_orientation!r} needs task "
+                         f"'pose', task {params.task!r}, dt {params.dt}, frames {frames})")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     arms = (robot.arm("left"), robot.arm("right"))
     plan = check_trajectory(traj, params.dt, arms[0].dof)
@@ -946,7 +967,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
 
         X_WB = scene.base_transform()
         body = p.loadURDF(str(scene.robot.urdf_path), X_WB[:3, 3].tolist(), _quat(X_WB[:3, :3]), useFixedBase=True,
-                          flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=cid)
+                          flags=p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER, physicsClientId=cid)
         info = [p.getJointInfo(body, j, physicsClientId=cid) for j in range(p.getNumJoints(body, physicsClientId=cid))]
         joint_index = {i[1].decode(): i[0] for i in info}
         link_index = {i[12].decode(): i[0] for i in info}
@@ -996,9 +1017,11 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                          activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
 
         zeros = [0.0] * len(movable)
-        sqrt_k = np.sqrt(np.array([params.kp] * 3 + [params.kr] * 3))
+        nt = 6 if params.task == "pose" else 3  # task coordinates per ball
+        sqrt_k = np.sqrt(np.array([params.kp] * 3 + [params.kr] * 3))[:nt]
         w_max = params.max_frequency if params.max_frequency > 0 else 0.5 / params.dt
-        reg = 1e-9 * np.eye(6)
+        reg = 1e-9 * np.eye(nt)
+        sqrt_kq = np.full(n_arm, math.sqrt(params.kq))
         model_period = max(int(params.model_period), 1)
         n_mov = len(movable)
 
@@ -1046,24 +1069,26 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         states = p.getJointStates(body, movable, physicsClientId=cid)
         sample(0, states)
         cols2 = np.stack(arm_cols)  # (2, n) columns of each arm in the full joint vector
-        i_arm, i_row, i_col = np.arange(2)[:, None, None], np.arange(6)[None, :, None], cols2[:, None, :]
+        i_arm, i_row, i_col = np.arange(2)[:, None, None], np.arange(nt)[None, :, None], cols2[:, None, :]
         m_row, m_col = cols2[:, :, None], cols2[:, None, :]
         delta_O = np.zeros((2, 3))  # rolling correction of each ball's target, object frame
         r_ball, dt, roll = scene.robot.ball_radius, params.dt, params.roll_compensation
         w_o, normals_s, contact_s = tg.w_o.tolist(), tg.n.tolist(), tg.contact.tolist()
+        compliance_s = tg.compliance.tolist()
+        eye_n = np.eye(n_arm)
         for j in range(1, S):
             # Torques for the step from j - 1 to j, from the state at j - 1 and the targets at j.
-            q = np.array([s[0] for s in states])
-            qd = np.array([s[1] for s in states])
-            ql, qdl = q.tolist(), qd.tolist()
+            ql, qdl = [s[0] for s in states], [s[1] for s in states]
+            q, qd = np.array(ql), np.array(qdl)
             ls = p.getLinkStates(body, balls, computeLinkVelocity=1, computeForwardKinematics=1,
                                  physicsClientId=cid)
             h_all = np.asarray(p.calculateInverseDynamics(body, ql, qdl, zeros, physicsClientId=cid))
             JL = p.calculateJacobian(body, balls[0], ball_local[0], ql, qdl, zeros, physicsClientId=cid)
             JR = p.calculateJacobian(body, balls[1], ball_local[1], ql, qdl, zeros, physicsClientId=cid)
-            J = np.fromiter(itertools.chain.from_iterable(JL[0] + JL[1] + JR[0] + JR[1]), float,
-                            12 * n_mov).reshape(2, 6, n_mov)[i_arm, i_row, i_col]  # (2, 6, n)
-            x_t = tg.x[j]
+            rows = JL[0] + JL[1] + JR[0] + JR[1] if nt == 6 else JL[0] + JR[0]
+            J = np.fromiter(itertools.chain.from_iterable(rows), float,
+                            2 * nt * n_mov).reshape(2, nt, n_mov)[i_arm, i_row, i_col]  # (2, nt, n)
+            x_t, v_t = tg.x[j], tg.v[j]
             if roll and (contact_s[j][0] or contact_s[j][1]):
                 # No slip at the contact: the centre must move by (w_o - w_ball) x r n relative to the
                 # object, accumulated in the object frame while the plan has contact.
@@ -1080,38 +1105,54 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ R_o.T)
             elif roll:
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ tg.R_o[j].T)
-            e = np.concatenate([x_t - (ls[0][4], ls[1][4]),
-                                (_quat_error(quat_tgt[j][0], ls[0][5]), _quat_error(quat_tgt[j][1], ls[1][5]))],
-                               axis=1)
-            e_dot = np.concatenate([tg.v[j] - (ls[0][6], ls[1][6]), tg.w[j] - (ls[0][7], ls[1][7])], axis=1)
+            if nt == 6:
+                e = np.concatenate([x_t - (ls[0][4], ls[1][4]),
+                                    (_quat_error(quat_tgt[j][0], ls[0][5]), _quat_error(quat_tgt[j][1], ls[1][5]))],
+                                   axis=1)
+                e_dot = np.concatenate([v_t - (ls[0][6], ls[1][6]), tg.w[j] - (ls[0][7], ls[1][7])], axis=1)
+            else:
+                e, e_dot = x_t - (ls[0][4], ls[1][4]), v_t - (ls[0][6], ls[1][6])
             JT = J.transpose(0, 2, 1)
             if (j - 1) % model_period == 0:
                 # The arm's dynamics model, refreshed every model_period steps (it changes slowly):
-                # mass matrix, task inertia, modal gains and the null-space map Jbar^T = Lam J M^-1.
+                # mass matrix, task inertia, the task and posture gains (dense, from their modes) and
+                # the null-space map N = I - J^T Jbar^T (Jbar^T = Lam J M^-1), applied to the posture.
                 M_all = np.fromiter(itertools.chain.from_iterable(p.calculateMassMatrix(body, ql, physicsClientId=cid)),
                                     float, n_mov * n_mov).reshape(n_mov, n_mov)
                 M_arm = M_all[m_row, m_col]  # (2, n, n)
-                MJ = np.linalg.inv(M_arm) @ JT  # (2, n, 6)
-                A = J @ MJ  # (2, 6, 6): the inverse task inertia
-                U, k_m, d_m = _modal_gains(sqrt_k, A, params.damping_ratio, w_max)
-                Ut = U.transpose(0, 2, 1)
-                JbarT = np.linalg.solve(A + reg, MJ.transpose(0, 2, 1))  # (2, 6, n)
-            modal = k_m * (Ut @ e[:, :, None])[:, :, 0] + d_m * (Ut @ e_dot[:, :, None])[:, :, 0]
-            W = (U @ modal[:, :, None])[:, :, 0]
+                M_inv = np.linalg.inv(M_arm)
+                MJ = M_inv @ JT  # (2, n, nt)
+                A = J @ MJ  # (2, nt, nt): the inverse task inertia
+                K_task, D_task = _dense_gains(*_modal_gains(sqrt_k, A, params.damping_ratio, w_max))
+                JbarT = np.linalg.solve(A + reg, MJ.transpose(0, 2, 1))  # (2, nt, n)
+                N = eye_n - JT @ JbarT
+                if (j - 1) % (4 * model_period) == 0:  # the posture's gains depend on M alone: slower still
+                    K_q, D_q = _dense_gains(*_modal_gains(sqrt_kq, M_inv, params.damping_ratio, w_max))
+                NK_q, ND_q = N @ K_q, N @ D_q
+            W = (K_task @ e[:, :, None] + D_task @ e_dot[:, :, None])[:, :, 0]
             W[:, :3] += tg.f[j]
             for a in range(2):
                 fx, fy, fz = W[a, :3].tolist()
                 nF = math.sqrt(fx * fx + fy * fy + fz * fz)
                 if nF > params.force_limit:
                     W[a, :3] *= params.force_limit / nF
-            # Null space: N tau0 = tau0 - J^T Jbar^T tau0.
-            tau0 = params.kq * (tg.q[j] - q[cols2]) + params.dq * (tg.qd[j] - qd[cols2])
-            tau_imp = (JT @ (W - (JbarT @ tau0[:, :, None])[:, :, 0])[:, :, None])[:, :, 0] + tau0 + h_all[cols2]
-            # Free motion: computed-torque joint tracking, blended with the impedance around contacts.
-            acc = tg.qdd[j] + params.kj * (tg.q[j] - q[cols2]) + params.dj * (tg.qd[j] - qd[cols2])
-            tau_joint = (M_arm @ acc[:, :, None])[:, :, 0] + h_all[cols2]
-            c = tg.compliance[j][:, None]
-            tau = c * tau_imp + (1.0 - c) * tau_joint
+            # The posture in the null space: N (Kq e_q + Dq e_q').
+            e_q, e_qd = tg.q[j] - q[cols2], tg.qd[j] - qd[cols2]
+            h = h_all[cols2]
+            c0, c1 = compliance_s[j]
+            if c0 > 0.0 or c1 > 0.0:
+                tau_imp = (JT @ W[:, :, None] + NK_q @ e_q[:, :, None] + ND_q @ e_qd[:, :, None])[:, :, 0] + h
+            if c0 < 1.0 or c1 < 1.0:
+                # Free motion: computed-torque joint tracking, blended with the impedance around contacts.
+                acc = tg.qdd[j] + params.kj * e_q + params.dj * e_qd
+                tau_joint = (M_arm @ acc[:, :, None])[:, :, 0] + h
+            if c0 == 1.0 and c1 == 1.0:
+                tau = tau_imp
+            elif c0 == 0.0 and c1 == 0.0:
+                tau = tau_joint
+            else:
+                c = tg.compliance[j][:, None]
+                tau = c * tau_imp + (1.0 - c) * tau_joint
             clipped = np.clip(tau, -effort, effort)
             saturated = bool(np.any(clipped != tau))
             saturated_steps += saturated

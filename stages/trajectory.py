@@ -11,10 +11,17 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   (``stages.mpc.run_pivot_mpc``); the object pose is the MPC's simulated pose, the ball centres
   follow it (``p_i(t) = X_WO(t) p_Oi`` moved out by the ball radius) and the joints are those of the
   planner's own IK check of the pivot (:func:`pivot_joints`), so that they end where the plan's next
-  transit starts;
+  transit starts. The MPC minimises the ball forces and so leans on the table's friction up to its
+  bound; it first runs with a smaller table friction (``Params.table_friction_tries``) and keeps
+  the first feasible run, which leaves physics with 20 % less friction than the scene a margin;
 - **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
   PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
 - **hold**: a short pause before and after each contact change.
+
+Around every contact of a pivot or a regrasp the balls are then turned about their centres where
+their tools (stick, flange) come closer to the object than ``Params.stick_clearance``
+(:func:`refine_stick_clearance`): the plan places the ball centres only, and a tool at 0.1 mm from
+the object touches it in physics.
 
 Tumble
 ------
@@ -75,6 +82,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from stages import artifacts, mpc, se3, transit
@@ -135,6 +143,11 @@ class Params:
     #: The MPC plans with this fraction of the scene's friction coefficients, so that the forces it
     #: plans leave room for what the compliant arms add in execution (the squeeze).
     friction_safety: float = 0.8
+    #: A pivot's MPC first tries these smaller fractions of the table's friction (in order; the
+    #: balls' stays ``friction_safety``) and keeps the first feasible one: the MPC minimises the
+    #: ball forces, so it leans on the table's friction up to its bound, and physics whose friction
+    #: is 20 % lower than the scene's (``pivot execute --randomize``) then has no margin left.
+    table_friction_tries: tuple[float, ...] = (0.6, 0.7)
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble: TumbleParams = field(default_factory=TumbleParams)
     hold: float = 0.5
@@ -145,6 +158,13 @@ class Params:
     acc: float = 2.0
     #: Transits planned here (a tumble's catcher, and the arms' way back to the plan's configurations).
     transit: transit.Params = field(default_factory=transit.Params)
+    #: The tool (stick and flange) keeps this clearance (m) from the object around each contact of a
+    #: pivot or regrasp (:func:`refine_stick_clearance`; 0: the plan's postures as they are).
+    stick_clearance: float = 0.006
+    #: ... by turning the ball about its centre by at most this much (rad), ramped in and out over
+    #: ``stick_ramp`` s around the rows that need it.
+    stick_max_turn: float = np.radians(20.0)
+    stick_ramp: float = 0.6
 
 
 COLUMNS = ("t", "primitive", "kind", "phase", "X", "X_ref", "X_start", "p_l", "p_r", "f_l", "f_r", "f_table",
@@ -279,6 +299,169 @@ def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.nd
         out[m] = q
     t = np.arange(T)
     return np.stack([np.interp(t, keys, out[:, j]) for j in range(n)], axis=1), why
+
+
+def tool_capsules(robot, arm: str) -> np.ndarray:
+    """Indices of ``arm``'s collision capsules rigid with its ball, the ball excepted (the stick and the
+    flange): they turn about the ball's centre when the ball does."""
+    a = robot.arm(arm)
+    group = np.cumsum(a.joint >= 0) - 1  # rigid group of each frame
+    link = np.asarray(a.cap_link)
+    return np.flatnonzero((group[link] == group[a.eef_index]) & (link != a.eef_index))
+
+
+def tool_clearance(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, mesh, samples: int = 11):
+    """Clearance of the tool capsules (:func:`tool_capsules`) from the object, per row.
+
+    ``q (T, n)``, ``X_WO (T, 4, 4)``; ``mesh`` the object (O). Points every ``1 / (samples - 1)`` of
+    each capsule's segment against the mesh (``trimesh.proximity.closest_point``) less its radius.
+    Returns ``clearance (T,)`` (m), ``p (T, 3)`` the nearest tool point and ``g (T, 3)`` the unit
+    direction from the object to it (W).
+    """
+    a = robot.arm(arm)
+    caps = tool_capsules(robot, arm)
+    F = robot.fk(arm, q)  # (T, L, 4, 4)
+    s = np.linspace(0.0, 1.0, samples)
+    P, rad = [], []
+    for c in caps:
+        seg = a.cap_a[c][None] + s[:, None] * (a.cap_b[c] - a.cap_a[c])[None]  # (S, 3) link frame
+        P.append(se3.transform_points(F[:, a.cap_link[c], None], seg[None]))  # (T, S, 3)
+        rad.append(np.full(samples, a.cap_r[c]))
+    P, rad = np.concatenate(P, axis=1), np.concatenate(rad)  # (T, K, 3), (K,)
+    T, K = P.shape[:2]
+    P_O = se3.transform_points(se3.invert(X_WO)[:, None], P)
+    c_O, dist, _ = trimesh.proximity.closest_point(mesh, P_O.reshape(-1, 3))
+    d = dist.reshape(T, K) - rad
+    k = np.argmin(d, axis=1)
+    rows = np.arange(T)
+    g_O = P_O[rows, k] - c_O.reshape(T, K, 3)[rows, k]
+    g = se3.rotate_vectors(X_WO, g_O / np.maximum(np.linalg.norm(g_O, axis=1, keepdims=True), 1e-12))
+    return d[rows, k], P[rows, k], g
+
+
+def _ik_pose(robot, arm: str, p_t: np.ndarray, R_t: np.ndarray, q0: np.ndarray, iters: int = 30):
+    """Joints ``(T, n)`` putting the ball centre on ``p_t (T, 3)`` and, in the null space of that,
+    turning the ball towards ``R_t (T, 3, 3)`` (W); damped least squares from ``q0 (T, n)``, joint
+    limits by clamping. Also returns the position errors ``(T,)`` (m)."""
+    a = robot.arm(arm)
+    q = np.clip(np.array(q0, dtype=float), a.lower, a.upper)
+    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    lam2 = 1e-6
+    n = a.dof
+    for _ in range(iters):
+        F = robot.fk(arm, q)
+        p, R = F[:, a.eef_index, :3, 3], F[:, a.eef_index, :3, :3]
+        w = np.einsum("tkij,kj->tki", F[:, moving, :3, :3], a.axis[moving])  # (T, m, 3) world joint axes
+        Jw = np.zeros((len(q), 3, n))
+        Jw[:, :, a.joint[moving]] = np.swapaxes(w, 1, 2)
+        Jp = np.zeros((len(q), 3, n))
+        Jp[:, :, a.joint[moving]] = np.swapaxes(np.cross(w, p[:, None] - F[:, moving][:, :, :3, 3]), 1, 2)
+        e_p = p_t - p
+        e_r = Rotation.from_matrix(R_t @ np.swapaxes(R, 1, 2)).as_rotvec()
+        Jp_pinv = np.swapaxes(Jp, 1, 2) @ np.linalg.inv(Jp @ np.swapaxes(Jp, 1, 2) + lam2 * np.eye(3))
+        dq1 = (Jp_pinv @ e_p[:, :, None])[:, :, 0]
+        N = np.eye(n) - Jp_pinv @ Jp
+        JrN = Jw @ N
+        rhs = e_r - (Jw @ dq1[:, :, None])[:, :, 0]
+        y = np.linalg.solve(JrN @ np.swapaxes(JrN, 1, 2) + 1e-4 * np.eye(3), rhs[:, :, None])
+        dq = dq1 + (N @ np.swapaxes(JrN, 1, 2) @ y)[:, :, 0]
+        dq *= np.minimum(1.0, 0.2 / np.maximum(np.abs(dq).max(axis=1), 1e-12))[:, None]
+        q = np.clip(q + dq, a.lower, a.upper)
+    err = np.linalg.norm(p_t - robot.eef_position(arm, q), axis=1)
+    return q, err
+
+
+def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
+    """Turn each ball about its centre, around its contacts, until its tool clears the object by
+    ``params.stick_clearance``; modifies ``rows["q_l"]``, ``rows["q_r"]`` in place.
+
+    The plan's IK places the ball centre only; the stick's direction is whatever the arm's posture
+    gives, and on Exp. 1 a grasp leaned the right stick 33 deg into its contact face: 0.1-2.6 mm from
+    the piano, which it touched in physics as soon as the object stood a millimetre off its planned
+    pose. A ball is a sphere, so its orientation is free: for each stretch of rows an arm is in
+    contact (with ``stick_ramp`` s of its approach and retreat; stretches that include a tumble are
+    left to :func:`plan_tumble`), the rows whose tool clearance (:func:`tool_clearance`) is below the
+    target get a turn about the ball centre, about the axis that moves the tool's nearest point away
+    from the object, by the deficit over that point's lever (at most ``stick_max_turn``), spread over
+    the neighbouring rows with a minimum-jerk ramp so that it is zero where the stretch begins and
+    ends; the joints are solved again (:func:`_ik_pose`, the ball centre exactly where planned). The
+    new joints are kept only when the ball stays within 1 mm of its planned centre, the joints stay
+    below their speed limits and the scene's collision checker passes every row; the refinement is
+    reported per stretch (arm, rows, clearance before and after, kept or why not).
+    """
+    robot, dt = env.robot, env.mp.dt
+    X, kind = rows["X"], rows["kind"]
+    T = len(X)
+    ramp = max(int(round(params.stick_ramp / dt)), 1)
+    out = []
+    for arm, qk, ck in (("left", "q_l", "c_l"), ("right", "q_r", "c_r")):
+        a = robot.arm(arm)
+        contact = np.asarray(rows[ck], dtype=bool)
+        d = np.diff(np.r_[0, contact.astype(int), 0])
+        for s0, e0 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
+            s, e = max(s0 - ramp, 0), min(e0 + ramp, T)
+            if np.any(kind[s:e] == "tumble"):
+                continue
+            q = rows[qk][s:e]
+            clear, p_tool, g = tool_clearance(robot, arm, q, X[s:e], env.mesh)
+            need = clear < params.stick_clearance
+            rec = {"arm": arm, "rows": [int(s), int(e)], "clearance": float(clear.min())}
+            if not need.any():
+                continue
+            F = robot.fk(arm, q)
+            c_ball, R_ball = F[:, a.eef_index, :3, 3], F[:, a.eef_index, :3, :3]
+            lever = p_tool - c_ball
+            axis = np.cross(lever, g)
+            axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+            turn = np.where(need, (params.stick_clearance - clear) / np.maximum(np.linalg.norm(lever, axis=1), 0.01),
+                            0.0)
+            turn = np.minimum(turn, params.stick_max_turn)
+            # Spread each row's turn over its neighbours (minimum-jerk kernel), zero at the stretch's ends.
+            k = np.arange(-ramp, ramp + 1)
+            kernel = 1.0 - _min_jerk_kernel(np.abs(k) / ramp)
+            spread = np.zeros(len(q))
+            rv = np.zeros((len(q), 3))
+            for i in np.flatnonzero(need):
+                lo, hi = max(i - ramp, 0), min(i + ramp + 1, len(q))
+                w = turn[i] * kernel[lo - i + ramp: hi - i + ramp]
+                better = w > spread[lo:hi]
+                spread[lo:hi] = np.where(better, w, spread[lo:hi])
+                rv[lo:hi][better] = axis[i]
+            edge = np.minimum(np.arange(len(q)), np.arange(len(q))[::-1]) / ramp
+            spread *= _min_jerk_kernel(np.minimum(edge, 1.0))
+            R_t = Rotation.from_rotvec(rv * spread[:, None]).as_matrix() @ R_ball
+            q_new, err = _ik_pose(robot, arm, c_ball, R_t, q)
+            q_new[spread == 0.0] = q[spread == 0.0]
+            clear_new = tool_clearance(robot, arm, q_new, X[s:e], env.mesh)[0]
+            rec["clearance_after"] = float(clear_new.min())
+            why = "ok"
+            ends = np.abs(np.concatenate([q_new[:1] - q[:1], q_new[-1:] - q[-1:]])).max()
+            speed = np.abs(np.diff(np.concatenate([rows[qk][s - 1:s], q_new, rows[qk][e:e + 1]]), axis=0)) / dt
+            if err.max() > 1e-3:
+                why = "ik_unreachable"
+            elif ends > 1e-9 or (speed / a.velocity).max() > 1.0:
+                why = "joint_jump"
+            elif clear_new.min() <= clear.min():
+                why = "no_better"
+            else:
+                other = rows["q_r" if arm == "left" else "q_l"][s:e]
+                ql, qr = (q_new, other) if arm == "left" else (other, q_new)
+                # The ball's centre is the plan's (approach and retreat included): only the rest is checked.
+                touching = np.stack([rows["c_l"][s:e], rows["c_r"][s:e]], axis=1).astype(bool)
+                touching[:, ARMS.index(arm)] = True
+                ok, reason = env.collide(ql, qr, X[s:e], touching)
+                if not ok.all():
+                    why = str(reason[np.argmin(ok)])
+            rec["kept"] = why
+            if why == "ok":
+                rows[qk][s:e] = q_new
+            out.append(rec)
+    return out
+
+
+def _min_jerk_kernel(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
 
 
 def _ball_centres(X, p_O, n_O, r):
@@ -445,10 +628,15 @@ class _Timeline:
         self.q[arm] = qs[-1]
         self.contact[arm] = new_contact
 
-    def columns(self) -> dict:
+    def arrays(self) -> dict:
+        """The rows so far as arrays (:data:`COLUMNS`), or {} when there are none."""
         if not self.cols["t"]:
             return {}
-        return _columns({k: np.concatenate(v) for k, v in self.cols.items()})
+        return {k: np.concatenate(v) for k, v in self.cols.items()}
+
+    def columns(self) -> dict:
+        rows = self.arrays()
+        return _columns(rows) if rows else {}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -829,7 +1017,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     tl = _Timeline(robot, r, p_O, n_O, dt, scene.object.mass * mp.g,
                    {a: robot.arm(a).velocity * params.vel_scale for a in ARMS}, params.acc)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
-             "tumbles": []}
+             "tumbles": [], "pivot_table_friction": []}
 
     def pose_of(step, key):
         return se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in step[key].items()})[0]
@@ -848,8 +1036,12 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            res = mpc.run_pivot_mpc(scene.object.mass, inertia, model.com, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr,
-                                    mp)
+            for fs in (*params.table_friction_tries, params.friction_safety):
+                res = mpc.run_pivot_mpc(scene.object.mass, inertia, model.com, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t,
+                                        Xr, replace(mp, mu_table=fs * scene.table.friction))
+                if res.status == "ok":
+                    break
+            stats["pivot_table_friction"].append(fs)
             if res.status != "ok":
                 stats.update(status="mpc_infeasible", failed_primitive=k)
                 break
@@ -876,7 +1068,10 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             stats["tumbles"].append({"step": k, **info})
             tl.hold(X_to, k, params.hold)
         stats["primitives"] += 1
-    cols = tl.columns()
+    rows = tl.arrays()
+    if rows and stats["status"] == "ok" and params.stick_clearance > 0:
+        stats["stick_clearance"] = refine_stick_clearance(env, rows, params)
+    cols = _columns(rows) if rows else {}
     stats["mpc_iters"] = float(np.median(stats["mpc_iters"])) if stats["mpc_iters"] else 0.0
     stats["steps"] = int(len(cols.get("step", [])))
     # The planned joints must be a path the arms can follow: the largest row-to-row joint speed as a

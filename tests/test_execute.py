@@ -277,6 +277,40 @@ def test_pivot_joints_end_where_the_planners_check_of_the_pivot_ends(pivot_case)
         assert err.max() < 1e-3
 
 
+def test_stick_refinement_turns_the_balls_about_their_centres_for_clearance(pivot_case):
+    """The MPC stage's tool-clearance pass (trajectory.refine_stick_clearance) on the pivot case with a
+    target 1 cm above its closest tool: the balls stay on their planned centres, the joints away from
+    the contacts and at the stretch ends are untouched, the tool clears the object by more."""
+    from types import SimpleNamespace
+
+    from stages import trajectory
+    from stages.sample import make_scene_collision_fn
+
+    c = pivot_case
+    robot, tr, mesh = c["robot"], c["traj"], c["mesh"]
+    X = se3.matrix_from_columns({k: np.asarray(tr[k]) for k in se3.POSE_COLUMNS})
+    rows = {"X": X, "kind": np.asarray(tr["kind"]), "q_l": np.array(tr["q_left"], dtype=float),
+            "q_r": np.array(tr["q_right"], dtype=float), "c_l": np.asarray(tr["left_contact"]),
+            "c_r": np.asarray(tr["right_contact"])}
+    q0 = {k: rows[k].copy() for k in ("q_l", "q_r")}
+    before = {a: trajectory.tool_clearance(robot, a, rows[k], X, mesh)[0]
+              for a, k in (("left", "q_l"), ("right", "q_r"))}
+    arm = min(before, key=lambda a: before[a].min())
+    target = float(before[arm].min()) + 0.01
+    env = SimpleNamespace(robot=robot, mp=SimpleNamespace(dt=ROW_DT), mesh=mesh,
+                          collide=make_scene_collision_fn(c["scene"], robot, mesh))
+    recs = trajectory.refine_stick_clearance(env, rows, trajectory.Params(stick_clearance=target))
+    rec = next(r for r in recs if r["arm"] == arm)
+    assert rec["kept"] == "ok", rec
+    k = "q_l" if arm == "left" else "q_r"
+    after = trajectory.tool_clearance(robot, arm, rows[k], X, mesh)[0]
+    assert after.min() > before[arm].min() + 0.003  # 10 mm asked; the turn is capped at 20 deg
+    s, e = rec["rows"]
+    assert np.array_equal(rows[k][:s + 1], q0[k][:s + 1]) and np.array_equal(rows[k][e - 1:], q0[k][e - 1:])
+    # The balls stay on their planned centres (IK tolerance 1 mm).
+    assert np.linalg.norm(robot.eef_position(arm, rows[k]) - robot.eef_position(arm, q0[k]), axis=1).max() < 1e-3
+
+
 def test_check_trajectory_rejects_missing_columns_and_rows_off_the_step(pivot_case):
     traj = dict(pivot_case["traj"])
     plan = execute.check_trajectory(traj, 1 / 240)
@@ -307,6 +341,12 @@ def _hold_table(case, seconds=2.0):
     q = _joint_paths(case["robot"], balls[:2])
     return _table(np.repeat(X0[None], T, 0), balls, np.zeros((T, 2), bool), np.zeros((T, 2, 3)),
                   [np.repeat(qa[:1], T, 0) for qa in q], ["hold"] * T, [0] * T, dt=1.0 / 240.0)
+
+
+def test_object_orientation_needs_the_pose_task(pivot_case):
+    p = pivot_case["params"]
+    with pytest.raises(InputError, match="ball_orientation 'object' needs task 'pose'"):
+        _run(pivot_case, params=execute.Params(ball_orientation="object", task="position", cache_dir=p.cache_dir))
 
 
 def test_hold_with_the_arms_away_keeps_the_object_still_and_succeeds(pivot_case, tmp_path):
