@@ -17,13 +17,14 @@ def diff(
     b: Annotated[Path, typer.Argument(help="Second artifact file or folder.")],
     rtol: Annotated[float, typer.Option(help="Relative tolerance for floats.")] = 1e-9,
     atol: Annotated[float, typer.Option(help="Absolute tolerance for floats.")] = 1e-9,
+    only: Annotated[str | None, typer.Option(help="Compare only this top-level key of two JSON artifacts.")] = None,
 ) -> None:
     """Compare two artifacts of the same kind, ignoring timings; exit 1 when they differ."""
     with cli_errors():
         for p in (a, b):
             if not p.exists():
                 raise ArtifactError(f"{p}: no such artifact")
-        lines = diff_artifacts(a, b, rtol=rtol, atol=atol)
+        lines = diff_artifacts(a, b, rtol=rtol, atol=atol, only=only)
     if lines:
         shown = lines[:20]
         typer.echo("\n".join(shown + ([f"... and {len(lines) - 20} more"] if len(lines) > 20 else [])))

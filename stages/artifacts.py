@@ -217,14 +217,24 @@ def _jsonable(obj):
 IGNORED_META = ("producer",)  # informational: names the command line, not the content
 
 
-def diff_artifacts(a: str | Path, b: str | Path, rtol: float = 1e-9, atol: float = 1e-9) -> list[str]:
+def diff_artifacts(a: str | Path, b: str | Path, rtol: float = 1e-9, atol: float = 1e-9,
+                   only: str | None = None) -> list[str]:
     """Differences between two artifacts (files) or two folders of artifacts, as short lines.
 
     Parquet columns are compared with ``numpy.isclose(rtol, atol)`` for floats and exactly otherwise;
     JSON values likewise, recursively. Timings files and the ``producer`` field are ignored. An
-    empty list means equal.
+    empty list means equal. ``only``: compare just this top-level key of two JSON artifacts (e.g. the
+    ``steps`` of two plans made with different flags).
     """
     a, b = Path(a), Path(b)
+    if only is not None:
+        if a.suffix != ".json" or b.suffix != ".json":
+            raise ArtifactError(f"{a} / {b}: --only compares a key of two .json artifacts")
+        da, db = read_json(a), read_json(b)
+        missing = [str(p) for p, d in ((a, da), (b, db)) if only not in d]
+        if missing:
+            raise ArtifactError(f"{', '.join(missing)}: no key {only!r}")
+        return _diff_values(da[only], db[only], only, rtol, atol)
     if a.is_dir() and b.is_dir():
         names = sorted({p.name for d in (a, b) for p in d.iterdir() if _is_artifact(p)})
         out = []

@@ -55,6 +55,23 @@ def _plan_margins(build: Path, plan: dict) -> list[float]:
     return out
 
 
+def _current(d: Path, full: Path) -> tuple[dict | None, dict | None]:
+    """``trajectories.json`` and ``execution.json`` of the variant folder ``d``, each only when made
+    from the artifact before it there (by the sha256 its metadata records): a stage that failed
+    leaves the older ones of an earlier plan behind. ``make reproduce`` copies the full planner's
+    into a variant with the same steps, so its plan may also be ``full``'s."""
+    mpc, ex = _read(d / "trajectories.json"), _read(d / "execution.json")
+    traj = d / "trajectories.parquet"
+    plans = {artifacts.sha256_file(p) for p in (d / "plan.json", full / "plan.json") if p.exists()}
+    if mpc is None or mpc.get("meta", {}).get("inputs", {}).get("plan") not in plans:
+        return None, None
+    if not traj.exists() or artifacts.read_table(traj, "trajectories").meta["inputs"].get("plan") not in plans:
+        return mpc, None
+    if ex is not None and ex.get("meta", {}).get("inputs", {}).get("trajectories") != artifacts.sha256_file(traj):
+        ex = None
+    return mpc, ex
+
+
 def collect(build_root: str | Path, scenes: list[str]) -> list[dict]:
     """One row per scene and variant with the plan, execution and timing figures."""
     rows = []
@@ -66,8 +83,7 @@ def collect(build_root: str | Path, scenes: list[str]) -> list[dict]:
             plan = _read(b / v / "plan.json")
             if plan is None:
                 continue
-            ex = _read(b / v / "execution.json")
-            mpc = _read(b / v / "trajectories.json")
+            mpc, ex = _current(b / v, b / "full")
             rows.append({
                 "scene": scene, "variant": v, "build": b, "dir": b / v, "plan": plan, "execution": ex, "mpc": mpc,
                 "timings": {**timings, "plan": (_read(b / v / "plan.json.timings.json") or {}).get("plan"),

@@ -386,13 +386,9 @@ class Robot:
         reach = np.linalg.norm(p_W - a.reach_centre, axis=1) <= a.reach_radius
         idx = np.flatnonzero(reach)
         if len(idx):
-            q_lib, cost_lib, tree = self._library(arm)
-            k = min(prm.neighbours, len(q_lib))
-            d, nn = tree.query(p_W[idx], k=k, workers=prm.threads)
-            d, nn = d.reshape(len(idx), k), nn.reshape(len(idx), k)
-            # Rank each target's neighbours: within seed_slack of the nearest first, then by comfort.
-            cost = cost_lib[nn] + np.where(d > d[:, :1] + prm.seed_slack, 1e6, 0.0)
-            ranked = np.take_along_axis(nn, np.argsort(cost, axis=1, kind="stable"), axis=1)
+            q_lib = self._library(arm)[0]
+            # The library neighbours are only needed to seed the first attempt or a restart.
+            ranked = self._ranked_neighbours(arm, p_W[idx]) if q_seed is None or restarts > 0 else None
             seed = q_seed[idx] if q_seed is not None else q_lib[ranked[:, 0]]
             first = 0 if q_seed is not None else 1
             q[idx], err[idx] = self._solve_parallel(a, p_W[idx], seed, tol)
@@ -401,6 +397,7 @@ class Robot:
                 if not still.any():
                     break
                 sub = idx[still]
+                k = ranked.shape[1]
                 seed = np.clip(q_lib[ranked[still, (first + r) % k]] + jitter[r], a.lower, a.upper)
                 q_r, err_r = self._solve_parallel(a, p_W[sub], seed, tol)
                 better = err_r < err[sub]
@@ -457,6 +454,35 @@ class Robot:
         if single:
             res = IKResult(q=res.q[:, 0], ok=res.ok[:, 0], reason=res.reason[:, 0], err=res.err[:, 0])
         return res
+
+    def library_seeds(self, arm: str, p_W: np.ndarray, rank: int) -> np.ndarray:
+        """Seed-library postures ``(N, n)`` for the targets ``p_W (N, 3)``: the entry of rank ``rank``
+        among each target's library neighbours, ranked as ``ik`` ranks them (within ``seed_slack`` of
+        the nearest first, then by comfort). Rank 0 seeds ``ik``'s first attempt, ranks 1, 2, ... its
+        restarts; ranks wrap around after ``IKParams.neighbours``."""
+        a = self.arm(arm)
+        p_W = _check_points(p_W)
+        if len(p_W) == 0:
+            return np.zeros((0, a.dof))
+        ranked = self._ranked_neighbours(arm, p_W)
+        return self._library(arm)[0][ranked[:, rank % ranked.shape[1]]]
+
+    def _ranked_neighbours(self, arm: str, p_W: np.ndarray) -> np.ndarray:
+        """Library indices ``(N, k)`` of each target's ``k = IKParams.neighbours`` nearest entries (by
+        ball position): those within ``seed_slack`` of the nearest first, then by comfort."""
+        prm = self.ik_params
+        q_lib, cost_lib, tree = self._library(arm)
+        k = min(prm.neighbours, len(q_lib))
+        d, nn = tree.query(p_W, k=k, workers=prm.threads)
+        d, nn = d.reshape(len(p_W), k), nn.reshape(len(p_W), k)
+        cost = cost_lib[nn] + np.where(d > d[:, :1] + prm.seed_slack, 1e6, 0.0)
+        return np.take_along_axis(nn, np.argsort(cost, axis=1, kind="stable"), axis=1)
+
+    def prepare_ik(self) -> None:
+        """Build the IK seed libraries of both arms now rather than at the first ``ik`` call (a setup
+        cost of about 0.1 s per arm, paid once per robot)."""
+        for arm in self.arms:
+            self._library(arm)
 
     def _solve_parallel(self, a: Arm, p: np.ndarray, seed: np.ndarray, tol: float):
         prm = self.ik_params
@@ -895,6 +921,8 @@ class _Mesh:
     fcl_obj: object  # fcl.CollisionObject at the identity
     centre: np.ndarray  # (3,) bounding-sphere centre
     radius: float  # bounding-sphere radius
+    lo: np.ndarray  # (3,) axis-aligned bounding box
+    hi: np.ndarray  # (3,)
     planes: np.ndarray  # (F, 4) convex-hull face planes n . x <= d, unit n
     convex: bool  # the mesh is its own convex hull
     mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
@@ -925,8 +953,8 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
     convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
     return _Mesh(fcl_obj=fcl.CollisionObject(bvh, fcl.Transform()), centre=centre,
-                 radius=float(np.linalg.norm(v - centre, axis=1).max()), planes=planes, convex=convex,
-                 mesh=mesh)
+                 radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo, hi=hi, planes=planes,
+                 convex=convex, mesh=mesh)
 
 
 def _capsules_W(a: Arm, qT: np.ndarray):
@@ -946,6 +974,33 @@ def _rigid_groups(a: Arm) -> np.ndarray:
     return np.cumsum(a.joint >= 0) - 1
 
 
+def _core_balls(a: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Balls that lie inside a collision capsule of ``a`` at every posture.
+
+    A capsule of the first movable link turns about the first joint's axis and nothing else moves it,
+    so a ball centred on that axis at the point ``P`` nearest the capsule's segment, of radius the
+    capsule radius minus that distance, lies inside it whatever ``q`` (rotations about the axis fix
+    ``P``). Returns capsule ids ``(K,)``, centres ``(K, 3)`` (world) and radii ``(K,)`` (m, > 0).
+    """
+    grp = _rigid_groups(a)[a.cap_link]
+    k1 = int(np.flatnonzero(a.joint >= 0)[0])
+    frames = _fk_frames(a, a.q_rest[:, None], upto=k1 + 1)
+    p1, w1 = frames[k1][1][:, 0], frames[k1][2][:, 0]
+    A, B = _capsules_W(a, a.q_rest[:, None])
+    ids, centres, radii = [], [], []
+    for c in np.flatnonzero(grp == 0):
+        u = B[:, c, 0] - A[:, c, 0]
+        v0 = (A[:, c, 0] - p1) - np.dot(A[:, c, 0] - p1, w1) * w1  # segment minus its axial part
+        v1 = u - np.dot(u, w1) * w1
+        t = float(np.clip(-np.dot(v0, v1) / np.dot(v1, v1), 0.0, 1.0)) if np.dot(v1, v1) > 1e-18 else 0.0
+        rho = a.cap_r[c] - np.linalg.norm(v0 + t * v1)
+        if rho > 0.0:
+            ids.append(c)
+            centres.append(p1 + np.dot(A[:, c, 0] + t * u - p1, w1) * w1)
+            radii.append(rho)
+    return np.array(ids, dtype=int), np.array(centres).reshape(-1, 3), np.array(radii)
+
+
 def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Points ``P (3, ...)`` expressed in a frame whose inverse pose is ``X_inv (4, 4)``."""
     t = X_inv[:3, 3].reshape((3,) + (1,) * (P.ndim - 1))
@@ -955,7 +1010,7 @@ def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), object_mesh=None,
-                      margin: float = 0.0, table_depth: float = 1.0) -> CollisionFn:
+                      margin: float = 0.0, table_depth: float = 1.0, threads: int = 1) -> CollisionFn:
     """Build a batched collision checker for both arms of ``robot`` in a scene (paper §4.2).
 
     Parameters
@@ -971,13 +1026,15 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
         Names default to ``obstacle_<i>``.
     object_mesh : trimesh.Trimesh of the object in its frame O, or None.
     margin : m; primitives closer than this count as colliding.
+    threads : worker threads, each checking a slice of the rows (batches of at least 1024 rows); the
+        numpy kernels release the GIL, python-fcl does not. Every row's answer depends on that row alone.
 
     Returns
     -------
     A ``CollisionFn``: ``check(q_left (N, n), q_right (N, n), X_WO (N, 4, 4) | None = None,
     touching (N, 2) bool | None = None) -> (ok (N,) bool, reason (N,) str)``.
     """
-    return CollisionFn(robot, table, obstacles, object_mesh, margin, table_depth)
+    return CollisionFn(robot, table, obstacles, object_mesh, margin, table_depth, threads)
 
 
 class CollisionFn:
@@ -991,6 +1048,8 @@ class CollisionFn:
     ``env_collision:<link>/<obstacle>``, ``self_collision:<link>/<trunk link>``,
     ``self_collision:<left link>/<right link>``, ``self_collision:<link>/<link>`` (one arm),
     ``env_collision:<link>/object``; ``"ok"`` when free. Each stage only looks at the rows still free.
+    With ``blame=True`` it also returns ``arms (N, 2)`` bool: the arms (left, right) whose links the
+    reported pair names (both for a left/right pair; none for a free row).
 
     The self-collision pairs left out are described in ``_self_pairs`` (adjacent links, pairs
     touching at ``q = 0``, pairs that stay apart over random postures). The ball's contact with the
@@ -999,8 +1058,10 @@ class CollisionFn:
     pre-filter; python-fcl is called only for capsules near a mesh that no hull plane separates.
     """
 
-    def __init__(self, robot: Robot, table, obstacles, object_mesh, margin: float, table_depth: float):
+    def __init__(self, robot: Robot, table, obstacles, object_mesh, margin: float, table_depth: float,
+                 threads: int = 1):
         self.arms = (robot.arm("left"), robot.arm("right"))
+        self.threads = int(threads)
         self.static = st = robot.static
         self.margin = float(margin)
         self.boxes, self.caps, self.cyls, self.meshes = [], [], [], []
@@ -1033,9 +1094,25 @@ class CollisionFn:
         self.box_inv = (np.stack([se3.invert(X) for X in st.box_X_W]) if len(st.box_X_W)
                         else np.zeros((0, 4, 4)))
         self.trunk_box_pairs, self.trunk_cap_pairs, self.intra_pairs, self.lr_pairs = _self_pairs(robot)
+        self.cores = [_core_balls(a) for a in self.arms]
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
-                 touching: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 touching: np.ndarray | None = None, *, blame: bool = False) -> tuple[np.ndarray, ...]:
+        N = len(q_left)
+        chunks = min(self.threads, N // 1024)
+        if chunks <= 1:
+            out = self._check(q_left, q_right, X_WO, touching)
+        else:
+            def part(rows):
+                return self._check(q_left[rows], q_right[rows], None if X_WO is None else X_WO[rows],
+                                   None if touching is None else touching[rows])
+
+            with ThreadPoolExecutor(chunks) as pool:
+                parts = list(pool.map(part, np.array_split(np.arange(N), chunks)))
+            out = tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+        return out if blame else out[:2]
+
+    def _check(self, q_left, q_right, X_WO, touching) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         arms, mg = self.arms, self.margin
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
@@ -1061,7 +1138,7 @@ class CollisionFn:
                 r = rows[k]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
                     < (a.cap_r[c] + mg) ** 2
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, ea, eb, er in self.caps:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
@@ -1072,7 +1149,7 @@ class CollisionFn:
                 ones = np.ones(len(c))
                 hit = _seg_seg_dist2(A[:, c, r], B[:, c, r], ea[:, None] * ones, eb[:, None] * ones) \
                     < (a.cap_r[c] + er + mg) ** 2
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, rad, hh in self.cyls:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
@@ -1081,13 +1158,13 @@ class CollisionFn:
                 c, k = np.nonzero(dm <= rho[s] + mg)
                 r = rows[k]
                 hit = _seg_cyl_dist(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), rad, hh) < a.cap_r[c] + mg
-                st.fail(r[hit], "env_collision", names[s][c[hit]], name)
+                st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, msh in self.meshes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), A[:, :, rows], B[:, :, rows],
                                   a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
-                st.fail(rows[k], "env_collision", names[s][c], name)
+                st.fail(rows[k], "env_collision", names[s][c], name, s)
 
         # Self: the trunk's boxes and capsules.
         trunk = self.static
@@ -1103,7 +1180,7 @@ class CollisionFn:
                 r, c = rows[k], cc[p]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
                     < (r_c[c] + mg) ** 2
-                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[c[hit]], trunk.box_names[kb])
+                st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[c[hit]], trunk.box_names[kb], s)
             if len(self.trunk_cap_pairs[s]):
                 rows = st.live()
                 kk, cc = self.trunk_cap_pairs[s].T
@@ -1112,7 +1189,7 @@ class CollisionFn:
                 hit = _seg_seg_dist2(trunk.cap_a[kk[p]].T, trunk.cap_b[kk[p]].T, A[:, cc[p], r], B[:, cc[p], r]) \
                     < (trunk.cap_r[kk[p]] + r_c[cc[p]] + mg) ** 2
                 st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[cc[p[hit]]],
-                           np.asarray(trunk.cap_names)[kk[p[hit]]])
+                        np.asarray(trunk.cap_names)[kk[p[hit]]], s)
 
         # Self: left against right, only on rows whose arms' bounding boxes overlap.
         rows = st.live()
@@ -1129,7 +1206,7 @@ class CollisionFn:
             hit = _seg_seg_dist2(Al[:, i[p], r], Bl[:, i[p], r], Ar[:, j[p], r], Br[:, j[p], r]) \
                 < (arms[0].cap_r[i[p]] + arms[1].cap_r[j[p]] + mg) ** 2
             st.fail(r[hit], "self_collision", np.asarray(arms[0].cap_names)[i[p[hit]]],
-                       np.asarray(arms[1].cap_names)[j[p[hit]]])
+                    np.asarray(arms[1].cap_names)[j[p[hit]]], None)
 
         # Self: within one arm.
         for s, a in enumerate(arms):
@@ -1144,7 +1221,7 @@ class CollisionFn:
             hit = _seg_seg_dist2(A[:, i[p], r], B[:, i[p], r], A[:, j[p], r], B[:, j[p], r]) \
                 < (a.cap_r[i[p]] + a.cap_r[j[p]] + mg) ** 2
             st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[i[p[hit]]],
-                       np.asarray(a.cap_names)[j[p[hit]]])
+                    np.asarray(a.cap_names)[j[p[hit]]], s)
 
         # The object; a touching ball is exempt.
         if self.object is not None and X_WO is not None:
@@ -1157,9 +1234,34 @@ class CollisionFn:
                 test[a.cap_link == a.eef_index] = ~touch[rows, s]
                 k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), A[:, :, rows], B[:, :, rows],
                                   a.cap_r, mg, test)
-                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object")
-        return st.alive, st.reason.astype(str)
+                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
+        return st.alive, st.reason.astype(str), st.blame
 
+
+
+    def object_blocks_arm(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Object poses at which some posture-independent part of an arm (``_core_balls``) overlaps the
+        object, so that every posture of that arm collides with it (the margin only adds to that).
+
+        Returns ``blocked (N, 2)`` bool (left, right) and ``reason (N,)`` str: the collision the
+        checker would report, ``env_collision:<link>/object`` for the first blocked arm, else ``"ok"``.
+        """
+        X_WO = np.asarray(X_WO, dtype=float).reshape(-1, 4, 4)
+        N = len(X_WO)
+        blocked = np.zeros((N, 2), bool)
+        reason = np.full(N, "ok", dtype=object)
+        if self.object is None or N == 0:
+            return blocked, reason.astype(str)
+        X_OW = se3.invert(X_WO)
+        for s, (a, (ids, centres, radii)) in enumerate(zip(self.arms, self.cores, strict=True)):
+            if not len(ids):
+                continue
+            P = np.broadcast_to(centres.T[:, :, None], (3, len(ids), N))
+            k, c = _mesh_hits(self.object, X_OW, P, P, radii, 0.0, np.ones((len(ids), N), bool))
+            blocked[k, s] = True
+            fresh = reason[k] == "ok"
+            reason[k[fresh]] = "env_collision:" + np.asarray(a.cap_names, dtype=object)[ids[c[fresh]]] + "/object"
+        return blocked, reason.astype(str)
 
 
 def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.02):
@@ -1211,18 +1313,21 @@ def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.0
 
 
 class _Rows:
-    """Per-call bookkeeping of ``CollisionFn``: which rows are still free, and why the others are not."""
+    """Per-call bookkeeping of ``CollisionFn``: which rows are still free, why the others are not, and
+    which arms the reported pair involves."""
 
     def __init__(self, n: int):
         self.alive = np.ones(n, bool)
         self.reason = np.full(n, "ok", dtype=object)
+        self.blame = np.zeros((n, 2), bool)
 
     def live(self) -> np.ndarray:
         return np.flatnonzero(self.alive)
 
-    def fail(self, rows: np.ndarray, kind: str, first, second) -> None:
+    def fail(self, rows: np.ndarray, kind: str, first, second, arm: int | None) -> None:
         """Mark ``rows`` (candidate order, repeats allowed) as colliding between the links named
-        ``first`` and ``second`` (arrays parallel to rows, or one name); a row keeps its first pair."""
+        ``first`` and ``second`` (arrays parallel to rows, or one name); a row keeps its first pair.
+        ``arm``: index of the arm whose link collides, None for a pair of one link of each arm."""
         if len(rows) == 0:
             return
         rows, idx = np.unique(rows, return_index=True)
@@ -1231,6 +1336,9 @@ class _Rows:
                                 np.shape(first))
         second = np.broadcast_to(np.asarray(second, dtype=object), first.shape)
         self.reason[rows[new]] = kind + ":" + first[idx[new]] + "/" + second[idx[new]]
+        self.blame[rows[new], :] = arm is None
+        if arm is not None:
+            self.blame[rows[new], arm] = True
         self.alive[rows] = False
 
 
@@ -1238,49 +1346,67 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
                margin: float, test: np.ndarray):
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
 
-    Only ``test (C, m)`` pairs are examined. Two numpy filters run before python-fcl: the mesh's
-    bounding sphere, then separation by one of its convex-hull face planes. What remains goes to
-    ``fcl.collide`` (capsule inflated by the margin); a capsule with no triangle contact can still lie
-    wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
-    mesh, trimesh's ray test otherwise). Returns the hits as ``(row, capsule)`` index arrays, ordered
-    by capsule then row.
+    Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
+    box (in the mesh frame, grown by the capsule radius), then separation from its convex hull: the
+    capsule's segment, clipped by every hull face plane pushed out by the capsule radius
+    (Cyrus–Beck), is empty. What remains goes to ``fcl.collide`` (capsule inflated by the margin),
+    capsule by capsule in index order; a row already hit by a lower capsule is not tested again. A
+    capsule with no triangle contact can still lie wholly inside the mesh, so one of its points is
+    tested for inclusion (hull planes for a convex mesh, trimesh's ray test otherwise). Returns hits
+    as ``(row, capsule)`` index arrays, ordered by capsule then row, which include each hit row's
+    lowest colliding capsule (not necessarily every capsule that collides with it).
     """
     import fcl
 
-    # Bounding spheres in the world: the mesh's centre is moved into W, not every capsule into O.
+    # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
+    # mesh's bounding box grown by the capsule radius.
     R, t = X_OW[:, :3, :3], X_OW[:, :3, 3]
-    centre_W = np.einsum("mji,mj->im", R, msh.centre - t)  # X_WO applied to the centre, (3, m)
     rr = radius + margin
-    rho = np.linalg.norm(B - A, axis=0) / 2 + rr[:, None]
-    cand = test & (np.linalg.norm((A + B) / 2 - centre_W[:, None, :], axis=0) <= rho + msh.radius)
-    c, k = np.nonzero(cand)
+
+    def to_mesh(P):
+        return np.stack([R[:, i, 0] * P[0] + R[:, i, 1] * P[1] + R[:, i, 2] * P[2] + t[:, i] for i in range(3)])
+
+    Ao, Bo = to_mesh(A), to_mesh(B)
+    grow = rr[:, None]
+    near = test & np.all((np.minimum(Ao, Bo) <= msh.hi[:, None, None] + grow)
+                         & (np.maximum(Ao, Bo) >= msh.lo[:, None, None] - grow), axis=0)
+    c, k = np.nonzero(near)
     if not len(c):
         return k, c
-    # The candidates' endpoints in the mesh frame.
-    a = np.einsum("kij,jk->ik", R[k], A[:, c, k]) + t[k].T
-    b = np.einsum("kij,jk->ik", R[k], B[:, c, k]) + t[k].T
-    rc = rr[c]
+    a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
     n, d = msh.planes[:, :3], msh.planes[:, 3]
     sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
-    separated = np.any((sa > rc) & (sb > rc), axis=0)
+    # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
+    ds = sb - sa
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = (rc - sa) / ds
+    lo = np.max(np.where(ds < 0, bound, 0.0), axis=0, initial=0.0)
+    hi = np.min(np.where(ds > 0, bound, 1.0), axis=0, initial=1.0)
+    separated = (lo > hi) | np.any((ds == 0) & (sa > rc), axis=0)
     c, k, a, b, rc, sa = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
         sa[:, ~separated]
     hit = np.zeros(len(c), bool)
+    tested = np.zeros(len(c), bool)
     req = fcl.CollisionRequest()
     u = b - a
     length = np.linalg.norm(u, axis=0)
     Rz = se3.rotation_between(np.array([0.0, 0.0, 1.0]), np.where(length > 1e-12, u, [[0.0], [0.0], [1.0]]).T)
     centre = ((a + b) / 2).T
     shapes: dict = {}  # one fcl object per capsule (its length and radius do not change with q)
-    for i, ci in enumerate(c.tolist()):
+    row_hit = np.zeros(X_OW.shape[0], bool).tolist()
+    for i, (ci, ki) in enumerate(zip(c.tolist(), k.tolist(), strict=True)):  # capsule-major (np.nonzero)
+        if row_hit[ki]:
+            continue
         if ci not in shapes:
             g = fcl.Sphere(rc[i]) if length[i] <= 1e-12 else fcl.Capsule(rc[i], length[i])
             shapes[ci] = fcl.CollisionObject(g, fcl.Transform())
         o = shapes[ci]
         o.setTransform(fcl.Transform(Rz[i], centre[i]))
-        hit[i] = fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0
+        tested[i] = True
+        if fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0:
+            hit[i] = row_hit[ki] = True
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
-    inside = ~hit & np.all(sa <= 0.0, axis=0)
+    inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
     if inside.any() and not msh.convex:
         inside[inside] = msh.mesh.contains(a[:, inside].T)
     hit |= inside

@@ -149,6 +149,9 @@ class StabilityResult:
     decided_by : (N,) str
         ``"rank"``, ``"filter"`` (closed-form test), ``"ipm"`` or ``"highs"`` (fallback); for the
         feasibility verdict.
+    alpha : (N,) float
+        The feasibility ray ``alpha*`` (inf where a closed-form test found the candidate stable, 0
+        where one found it unstable or the set is degenerate); it does not depend on ``R_WD``.
     stats : dict
         Counts for benchmarks: candidates, degenerate, settled by pre-filters, feasibility LPs,
         margin LPs, HiGHS fallbacks.
@@ -159,6 +162,7 @@ class StabilityResult:
     reason: np.ndarray
     rank: np.ndarray
     decided_by: np.ndarray
+    alpha: np.ndarray
     stats: dict = field(default_factory=dict)
 
 
@@ -614,6 +618,7 @@ def _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frame
     ``eef_frames (N, e, 3, 3)``: columns n, t1, t2 of each EEF contact, W.
     """
     N, k = table_mask.shape
+    e = eef_mask.shape[1]
     p = params
     kact = table_mask.sum(1)
     eact = eef_mask.sum(1)
@@ -651,6 +656,30 @@ def _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frame
                             eef_mask, p.mu_eef, p.n_sides, p.f_max)
         reach = np.linalg.norm(com_W - a, axis=1) + 1.0
         unstable |= check & ((need < lo - slack * reach) | (need > hi + slack * reach))
+    if k >= 3 and e:
+        # Coplanar table points all on one side of a line through two of them (an edge of their
+        # hull): about that line the table's forces have a moment of one sign only (friction lies in
+        # the table plane, which holds the line; the normal forces push up on one side), so the EEF
+        # moments must make up at least the rest of gravity's.
+        i, j = np.triu_indices(k, 1)
+        a, b = table_pts_W[:, i], table_pts_W[:, j]                       # (N, P, 3)
+        u = b - a
+        ln = np.linalg.norm(u, axis=2)
+        u = u / np.maximum(ln, tol.zero)[..., None]
+        v = np.cross(_EZ, u)                                               # horizontal, across the line
+        side = np.einsum("npa,nqa->npq", v, table_pts_W) - np.einsum("npa,npa->np", v, a)[..., None]
+        others = table_mask[:, None, :] & (np.arange(k) != i[:, None]) & (np.arange(k) != j[:, None])
+        below = np.all(~others | (side <= 0.0), axis=2)
+        above = np.all(~others | (side >= 0.0), axis=2)
+        # Orient the axis so that the table's moment about it is <= 0 (its points on the -v side).
+        u = np.where(above[..., None], -u, u)
+        live = (flat & (kact >= 3))[:, None] & table_mask[:, i] & table_mask[:, j] & (ln > tol.merge) & (below | above)
+        m_g = np.einsum("npa,npa->np", np.cross(com_W[:, None, :] - a, -W[:, None, None] * _EZ), u)
+        _, hi = _eef_range(np.cross(u[:, :, None, :], eef_pts_W[:, None] - a[:, :, None, :]).reshape(N * len(i), e, 3),
+                           np.repeat(eef_frames, len(i), axis=0), np.repeat(eef_mask, len(i), axis=0), p.mu_eef,
+                           p.n_sides, p.f_max)
+        reach = np.linalg.norm(com_W[:, None, :] - a, axis=2) + 1.0
+        unstable |= np.any(live & (hi.reshape(N, len(i)) < -m_g - slack[:, None] * reach), axis=1)
     return stable & ~unstable, unstable
 
 
@@ -720,7 +749,8 @@ def _rank_and_span(M, wstar):
 
 
 def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L,
-             params: Params = Params(), *, R_WD=None, compute_margin: bool = True) -> StabilityResult:
+             params: Params = Params(), *, R_WD=None, compute_margin: bool = True,
+             alpha: np.ndarray | None = None) -> StabilityResult:
     """Grasp stability and L1 wrench margin of N candidates (§4.3, eq. 1–4).
 
     Parameters
@@ -746,6 +776,9 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
         Orientation of the frame D whose axes define the L1 margin ball (default W).
     compute_margin : bool
         Compute margins of the stable candidates (always done when ``params.margin_min > 0``).
+    alpha : (N,) float, optional
+        ``StabilityResult.alpha`` of an earlier call on the same candidates (any ``R_WD``): the
+        feasibility LPs are skipped and the verdicts taken from it.
 
     Returns
     -------
@@ -814,11 +847,20 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
     decided_by = np.full(N, "ipm", dtype="<U8")
     decided_by[degenerate] = "rank"
     decided_by[s_pf | u_pf] = "filter"
-    alpha = np.where(s_pf, np.inf, 0.0)
+    known = alpha is not None
+    if known:
+        alpha = np.asarray(alpha, float)
+        if alpha.shape != (N,) or np.any(np.isnan(alpha)):
+            raise PivotError(f"stability: alpha has shape {alpha.shape}, expected ({N},) without NaN")
+        stable = ~degenerate & (alpha >= 1.0 - p.feas_tol)
+        decided = np.ones(N, bool)
+        decided_by[:] = "given"
+    else:
+        alpha = np.where(s_pf, np.inf, 0.0)
 
     todo = np.nonzero(~decided)[0]
     want_margin = compute_margin or p.margin_min > 0
-    stats = {"n": N, "degenerate": int(degenerate.sum()), "prefilter": int((s_pf | u_pf).sum()),
+    stats = {"n": N, "degenerate": int(degenerate.sum()), "prefilter": 0 if known else int((s_pf | u_pf).sum()),
              "feasibility_lps": len(todo), "margin_lps": 0, "highs_fallbacks": 0}
     ng, gs = e, p.n_sides
     colmask = np.repeat(np.concatenate([table_mask, eef_mask], 1), gs, axis=1)
@@ -873,12 +915,12 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
         stable = stable & ~low
         reason[low] = "low_margin"
     return StabilityResult(stable=stable, margin=margin, reason=reason, rank=rank.astype(np.int64),
-                           decided_by=decided_by, stats=stats)
+                           decided_by=decided_by, alpha=alpha, stats=stats)
 
 
 def evaluate_threaded(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L,
-                      params: Params = Params(), *, R_WD=None, compute_margin: bool = True, threads: int = 2,
-                      min_rows: int = 1024) -> StabilityResult:
+                      params: Params = Params(), *, R_WD=None, compute_margin: bool = True, alpha=None,
+                      threads: int = 2, min_rows: int = 1024) -> StabilityResult:
     """:func:`evaluate` on ``threads`` equal slices of the N candidates at once (numpy releases the GIL
     in the solver's kernels; ~1.4x on 2 cores). Each candidate's result depends only on its own
     inputs, so the answer equals :func:`evaluate`'s exactly."""
@@ -886,7 +928,7 @@ def evaluate_threaded(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_norma
     N = len(com_W)
     if threads <= 1 or N < min_rows:
         return evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L, params,
-                        R_WD=R_WD, compute_margin=compute_margin)
+                        R_WD=R_WD, compute_margin=compute_margin, alpha=alpha)
     from concurrent.futures import ThreadPoolExecutor
 
     def rows(v, idx):
@@ -896,10 +938,10 @@ def evaluate_threaded(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_norma
         return evaluate(rows(mass, idx), com_W[idx], rows(table_pts_W, idx), rows(table_mask, idx),
                         rows(eef_pts_W, idx), rows(eef_normals_W, idx), rows(eef_mask, idx), rows(L, idx), params,
                         R_WD=None if R_WD is None or np.ndim(R_WD) == 2 else np.asarray(R_WD)[idx],
-                        compute_margin=compute_margin)
+                        compute_margin=compute_margin, alpha=rows(alpha, idx))
 
     with ThreadPoolExecutor(threads) as pool:
         parts = list(pool.map(part, np.array_split(np.arange(N), threads)))
     stats = {k: sum(p.stats.get(k, 0) for p in parts) for k in parts[0].stats}
     return StabilityResult(*(np.concatenate([getattr(p, f) for p in parts])
-                             for f in ("stable", "margin", "reason", "rank", "decided_by")), stats=stats)
+                             for f in ("stable", "margin", "reason", "rank", "decided_by", "alpha")), stats=stats)

@@ -1131,6 +1131,8 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
     out = Path(out_path)
     if stats["status"] == "ok":
         artifacts.write_table(out, cols, FIELDS, artifacts.make_meta("trajectories", meta_params, inputs, producer))
+    else:  # no trajectories for this plan: an older file would pass for them
+        out.unlink(missing_ok=True)
     artifacts.write_json(out.with_suffix(".json"), stats, artifacts.make_meta("mpc", meta_params, inputs, producer))
     artifacts.write_timings(out.with_suffix(".json"), {"mpc": time.perf_counter() - t0})
     return stats

@@ -88,3 +88,18 @@ def test_toy_piano_analysis_matches_golden(tmp_path):
     assert GOLDEN.is_dir(), "golden artifacts missing: make golden"
     r = invoke("diff", GOLDEN, out, "--rtol", "1e-7", "--atol", "1e-9")
     assert r.exit_code == 0, r.output
+
+
+def test_diff_only_one_key_of_two_json_artifacts(tmp_path):
+    meta = artifacts.make_meta("plan", {"no_usp": False}, {}, "test")
+    a, b, c = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
+    artifacts.write_json(a, {"status": "ok", "steps": [{"primitive": "pivot", "angle": 0.5}]}, meta)
+    artifacts.write_json(b, {"status": "ok", "steps": [{"primitive": "pivot", "angle": 0.5}]},
+                         artifacts.make_meta("plan", {"no_usp": True}, {}, "test"))
+    artifacts.write_json(c, {"status": "ok", "steps": [{"primitive": "pivot", "angle": -0.5}]}, meta)
+    assert invoke("diff", a, b).exit_code == 1  # the flags differ
+    assert invoke("diff", a, b, "--only", "steps").exit_code == 0
+    r = invoke("diff", a, c, "--only", "steps")
+    assert r.exit_code == 1 and "steps[0].angle" in r.output
+    r = invoke("diff", a, c, "--only", "cost")
+    assert r.exit_code == 2 and "no key 'cost'" in r.output

@@ -322,6 +322,7 @@ def test_collision_free_rest_posture_is_ok(scene_robot):
     q = scene_robot.arms["left"].q_rest[None]
     ok, reason = check(q, q)
     assert ok.tolist() == [True] and reason.tolist() == ["ok"]
+    assert check(q, q, blame=True)[2].tolist() == [[False, False]]
 
 
 def test_arm_folded_down_through_the_table_hits_the_table(scene_robot):
@@ -331,6 +332,7 @@ def test_arm_folded_down_through_the_table_hits_the_table(scene_robot):
     q_right = scene_robot.arms["right"].q_rest[None]
     ok, reason = check(res.q, q_right)
     assert not ok[0] and reason[0].startswith("env_collision:left_") and reason[0].endswith("/table")
+    assert check(res.q, q_right, blame=True)[2].tolist() == [[True, False]]  # only the left arm is to blame
     # Without the table the same posture is free.
     assert make_collision_fn(scene_robot)(res.q, q_right)[0][0]
 
@@ -345,6 +347,7 @@ def test_arms_crossed_into_each_other_collide_with_each_other(scene_robot):
     assert ql.ok[0] and qr.ok[0]
     ok, reason = check(ql.q, qr.q)
     assert not ok[0] and reason[0].startswith("self_collision:left_") and "/right_" in reason[0]
+    assert check(ql.q, qr.q, blame=True)[2].tolist() == [[True, True]]
 
 
 @pytest.mark.parametrize("kind, dims", [("box", (0.02, 0.02, 0.02)), ("sphere", (0.01,)),
@@ -406,6 +409,80 @@ def test_collision_batch_equals_loop(scene_robot):
         assert one[0][0] == ok[i] and one[1][0] == reason[i]
     empty = check(ql[:0], qr[:0], X_WO[:0], touch[:0])
     assert empty[0].shape == empty[1].shape == (0,)
+
+
+def test_threaded_collision_check_equals_the_serial_one(scene_robot):
+    rng = np.random.default_rng(9)
+    arm = scene_robot.arms["left"]
+    n = 2100  # two slices of at least 1024 rows
+    ql = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    qr = np.clip(arm.q_rest + rng.normal(0, 0.6, (n, 7)), arm.lower, arm.upper)
+    X_WO = np.broadcast_to(se3.make_transform(np.eye(3), [0.1, 0.0, 0.2]), (n, 4, 4))
+    touch = rng.random((n, 2)) < 0.5
+    kw = dict(table=TABLE, object_mesh=trimesh.creation.box((0.3, 0.4, 0.4)))
+    one = make_collision_fn(scene_robot, **kw)(ql, qr, X_WO, touch, blame=True)
+    two = make_collision_fn(scene_robot, **kw, threads=2)(ql, qr, X_WO, touch, blame=True)
+    assert 0 < one[0].sum() < n
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_object_on_the_first_links_axis_blocks_the_arm_at_every_posture(scene_robot):
+    """A small box around the left core ball (on the first joint's axis, inside link 1's capsule
+    whatever q): blocked for the left arm, not the right, and every random left posture hits it."""
+    check = make_collision_fn(scene_robot, object_mesh=trimesh.creation.box((0.04, 0.04, 0.04)))
+    ids, centres, radii = check.cores[0]
+    assert len(ids) == 1 and radii[0] > 0.04
+    X_in = se3.make_transform(np.eye(3), centres[0])
+    X_away = se3.make_transform(np.eye(3), centres[0] + [0.6, 0.0, 0.0])
+    blocked, why = check.object_blocks_arm(np.stack([X_in, X_away]))
+    assert blocked.tolist() == [[True, False], [False, False]]
+    assert why.tolist() == [f"env_collision:{scene_robot.arms['left'].cap_names[ids[0]]}/object", "ok"]
+    arm = scene_robot.arms["left"]
+    rng = np.random.default_rng(5)
+    ql = rng.uniform(arm.lower, arm.upper, (200, arm.dof))
+    qr = np.broadcast_to(scene_robot.arms["right"].q_rest, (200, arm.dof))
+    ok, _, blame = check(ql, qr, np.broadcast_to(X_in, (200, 4, 4)), np.ones((200, 2), bool), blame=True)
+    assert not ok.any()
+    assert blame[:, 0].all()  # the left arm is always involved
+
+
+def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl():
+    """The hull filters (bounding sphere, Cyrus-Beck clipping) and the early exit per row only skip
+    work: the first colliding capsule of every row is the one a plain fcl test of all pairs finds."""
+    import fcl
+
+    from tests.conftest import l_prism
+
+    mesh = l_prism()
+    msh = rb._make_mesh(mesh, "L prism")
+    rng = np.random.default_rng(3)
+    C, m = 5, 60
+    centre = mesh.bounds.mean(axis=0)
+    A = centre[:, None, None] + rng.uniform(-0.35, 0.35, (3, C, m))
+    u = rng.normal(0.0, 1.0, (3, C, m))
+    B = A + u / np.linalg.norm(u, axis=0) * rng.uniform(0.02, 0.2, C)[:, None]  # a capsule keeps its length
+    radius = rng.uniform(0.005, 0.04, C)
+    X_OW = np.broadcast_to(np.eye(4), (m, 4, 4))
+    test = rng.random((C, m)) < 0.9
+    k, c = rb._mesh_hits(msh, X_OW, A, B, radius, 0.0, test)
+    got = {}
+    for kk, cc in zip(k.tolist(), c.tolist(), strict=True):
+        got[kk] = min(got.get(kk, C), cc)
+    want = {}
+    for ci in range(C):
+        for ki in np.flatnonzero(test[ci]):
+            a, b = A[:, ci, ki], B[:, ci, ki]
+            u = b - a
+            g = fcl.Capsule(radius[ci], np.linalg.norm(u))
+            R = se3.rotation_between(np.array([0.0, 0.0, 1.0]), u / np.linalg.norm(u))
+            o = fcl.CollisionObject(g, fcl.Transform(R, (a + b) / 2))
+            hit = fcl.collide(o, msh.fcl_obj, fcl.CollisionRequest(), fcl.CollisionResult()) > 0
+            hit = hit or bool(mesh.contains(a[None])[0])  # wholly inside
+            if hit and ki not in want:
+                want[int(ki)] = ci
+    assert 5 < len(want) < m  # the sample mixes free and colliding rows
+    assert got == want
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.optimize import linprog
@@ -18,6 +21,7 @@ from stages.stability import (
     wrench_matrix,
 )
 
+REPO = Path(__file__).resolve().parents[1]
 G0 = 9.81
 C30 = np.cos(np.pi / 6)  # inscribed radius of the unit hexagon: vertical friction of a side contact
 
@@ -368,6 +372,14 @@ def test_prefilters_agree_with_the_lp(monkeypatch):
     import stages.stability as st
     rng = np.random.default_rng(3)
     scenes = [(random_scenes(rng, 80, k, e), Params(f_max=f)) for k, e in CASES for f in (8.0, 20.0, 60.0)]
+    # USP-like: the CoM beyond the table points (their disc has radius 0.2 m), held by one or two EEFs.
+    for k, e in [(3, 1), (5, 1), (4, 2)]:
+        for f in (8.0, 20.0, 60.0):
+            kw = random_scenes(rng, 80, k, e)
+            shift = np.array([0.22, 0.0, 0.0])
+            kw["com_W"] = kw["com_W"] + shift
+            kw["eef_pts_W"] = kw["eef_pts_W"] + shift
+            scenes.append((kw, Params(f_max=f)))
     ref = [evaluate(**kw, params=p, compute_margin=False) for kw, p in scenes]
     monkeypatch.setattr(st, "_prefilter", lambda W, com, *a: (np.zeros(len(com), bool),) * 2)
     lp = [evaluate(**kw, params=p, compute_margin=False) for kw, p in scenes]
@@ -416,8 +428,27 @@ def test_invariant_under_rigid_motion_about_z():
         np.testing.assert_allclose(res.margin, base.margin, rtol=1e-6, atol=1e-9)
 
 
+def test_margins_from_a_given_alpha_equal_a_full_evaluation():
+    """The feasibility ray of a call without R_WD seeds the margins of a call with it."""
+    rng = np.random.default_rng(21)
+    for k, e in [(1, 2), (4, 2), (3, 1)]:
+        kw = random_scenes(rng, 40, k, e)
+        R = se3.rotation_about_axis(np.array([0.0, 0.0, 1.0]), rng.uniform(-np.pi, np.pi, 40))
+        full = evaluate(**kw, R_WD=R)
+        first = evaluate(**kw, compute_margin=False)
+        given = evaluate(**kw, R_WD=R, alpha=first.alpha)
+        np.testing.assert_array_equal(given.stable, full.stable)
+        np.testing.assert_array_equal(given.reason, full.reason)
+        assert given.stats["feasibility_lps"] == 0
+        # Same LPs from the same start; BLAS blocking may differ with the batch.
+        np.testing.assert_allclose(given.margin, full.margin, rtol=1e-9, atol=1e-12)
+
+
 def test_threaded_evaluation_equals_the_serial_one():
-    import bench.bench_stability as bs
+    # By path: bench/ is not a package on sys.path under the plain `pytest` entry point.
+    spec = importlib.util.spec_from_file_location("bench_stability", REPO / "bench" / "bench_stability.py")
+    bs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bs)
 
     for case in bs.make_candidates(3000, 1).values():
         args = [case[k] for k in ("mass", "com_W", "table_pts_W", "table_mask", "eef_pts_W", "eef_normals_W",
