@@ -201,10 +201,10 @@ class Params:
         (and, with ``ball_orientation = "object"``, the orientation returns to the planned joints').
     force_limit : bound (N) on the commanded Cartesian force at each ball.
     clip_effort : clip joint torques to the URDF's ``effort`` limits.
-    model_period : physics steps between refreshes of the arms' dynamics model: mass matrix, task
-        inertia, task gains and null-space map (60 Hz by default; the arms turn < 0.01 rad in that
-        time); the posture gains, which depend on the mass matrix alone, every 4 refreshes. The
-        Jacobian, gravity, Coriolis and the errors are refreshed every step.
+    model_period : physics steps between refreshes of the arms' dynamics model: Jacobian, mass
+        matrix, task inertia, task gains and null-space map (60 Hz by default; the arms turn
+        < 0.01 rad in that time); the posture gains, which depend on the mass matrix alone, every 4
+        refreshes. Gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
     fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
@@ -1083,11 +1083,14 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             ls = p.getLinkStates(body, balls, computeLinkVelocity=1, computeForwardKinematics=1,
                                  physicsClientId=cid)
             h_all = np.asarray(p.calculateInverseDynamics(body, ql, qdl, zeros, physicsClientId=cid))
-            JL = p.calculateJacobian(body, balls[0], ball_local[0], ql, qdl, zeros, physicsClientId=cid)
-            JR = p.calculateJacobian(body, balls[1], ball_local[1], ql, qdl, zeros, physicsClientId=cid)
-            rows = JL[0] + JL[1] + JR[0] + JR[1] if nt == 6 else JL[0] + JR[0]
-            J = np.fromiter(itertools.chain.from_iterable(rows), float,
-                            2 * nt * n_mov).reshape(2, nt, n_mov)[i_arm, i_row, i_col]  # (2, nt, n)
+            refresh = (j - 1) % model_period == 0
+            if refresh:
+                JL = p.calculateJacobian(body, balls[0], ball_local[0], ql, qdl, zeros, physicsClientId=cid)
+                JR = p.calculateJacobian(body, balls[1], ball_local[1], ql, qdl, zeros, physicsClientId=cid)
+                rows = JL[0] + JL[1] + JR[0] + JR[1] if nt == 6 else JL[0] + JR[0]
+                J = np.fromiter(itertools.chain.from_iterable(rows), float,
+                                2 * nt * n_mov).reshape(2, nt, n_mov)[i_arm, i_row, i_col]  # (2, nt, n)
+                JT = J.transpose(0, 2, 1)
             x_t, v_t = tg.x[j], tg.v[j]
             if roll and (contact_s[j][0] or contact_s[j][1]):
                 # No slip at the contact: the centre must move by (w_o - w_ball) x r n relative to the
@@ -1111,9 +1114,9 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                                    axis=1)
                 e_dot = np.concatenate([v_t - (ls[0][6], ls[1][6]), tg.w[j] - (ls[0][7], ls[1][7])], axis=1)
             else:
-                e, e_dot = x_t - (ls[0][4], ls[1][4]), v_t - (ls[0][6], ls[1][6])
-            JT = J.transpose(0, 2, 1)
-            if (j - 1) % model_period == 0:
+                ball = np.array((ls[0][4], ls[1][4], ls[0][6], ls[1][6]))  # centres, then velocities
+                e, e_dot = x_t - ball[:2], v_t - ball[2:]
+            if refresh:
                 # The arm's dynamics model, refreshed every model_period steps (it changes slowly):
                 # mass matrix, task inertia, the task and posture gains (dense, from their modes) and
                 # the null-space map N = I - J^T Jbar^T (Jbar^T = Lam J M^-1), applied to the posture.
@@ -1153,10 +1156,11 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             else:
                 c = tg.compliance[j][:, None]
                 tau = c * tau_imp + (1.0 - c) * tau_joint
-            clipped = np.clip(tau, -effort, effort)
-            saturated = bool(np.any(clipped != tau))
+            saturated = bool((np.abs(tau) > effort).any())
+            if saturated:
+                tau = np.clip(tau, -effort, effort)
             saturated_steps += saturated
-            p.setJointMotorControlArray(body, all_arm, p.TORQUE_CONTROL, forces=clipped.ravel().tolist(),
+            p.setJointMotorControlArray(body, all_arm, p.TORQUE_CONTROL, forces=tau.ravel().tolist(),
                                         physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
             check_collisions(float(plan.t[0]) + j * dt)
