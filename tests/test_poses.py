@@ -1,5 +1,7 @@
 """Pose sampling (§5.1): pivot steps and tumbles on a box, SP/USP near the table edge, obstacles."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -142,7 +144,7 @@ def test_the_robots_trunk_is_an_obstacle_for_the_object():
     from stages.sample import trunk_obstacles
     from stages.scene import load_scene
 
-    scene = load_scene("data/scenes/default.json")
+    scene = load_scene(Path(__file__).resolve().parents[1] / "data" / "scenes" / "default.json")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     model = box_model()
     torso = next(ob for ob in trunk_obstacles(robot) if ob.name == "robot:torso_link")
