@@ -17,7 +17,7 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   use, ``friction_safety`` and ``force_safety``). Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between two grasps that share one ball's contact, when that ball alone holds the object on its
-  table edge (``margin_hold_*`` ≥ 0, §5.2.2): the other ball moves. Undirected. The transit motions
+  table edge (``hold_*``, §5.2.2): the other ball moves. Undirected. The transit motions
   themselves are planned lazily by ``pivot plan``.
 - **tumble** (weight ``w_tumble``, directed): over a support edge onto the next stable face
   (§5.2.2). One ball pushes: a contact whose inward normal drives the rotation, with IK and no
@@ -169,7 +169,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
         edges.append((gi, free_of_pose[grasps["pose_id"][gi]], "regrasp", w.regrasp / 2, "ok", -1, -1, -1, "both"))
     usp_ids = np.flatnonzero(~sp_grasp)
     for k, arm in ((0, "left"), (1, "right")):
-        hold = grasps["margin_hold_left" if k == 0 else "margin_hold_right"]
+        hold = grasps["hold_left" if k == 0 else "hold_right"]
         key = np.stack([grasps["pose_id"][usp_ids], (grasps["contact_left"] if k == 0 else
                                                      grasps["contact_right"])[usp_ids]], axis=1)
         order = np.lexsort((usp_ids, key[:, 1], key[:, 0]))
@@ -179,7 +179,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             for i in range(len(group)):
                 for j in range(i + 1, len(group)):
                     a, b = group[i], group[j]
-                    status = "ok" if hold[a] >= 0 else "unstable"
+                    status = "ok" if hold[a] else "unstable"
                     mover = "right" if arm == "left" else "left"
                     edges.append((a, b, "regrasp", w.regrasp, status, -1, -1, -1, mover))
     t1 = time.perf_counter()
@@ -251,7 +251,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     la, lb = links["pose_a"][tumbles], links["pose_b"][tumbles]
     tumble_edges = np.stack([links["edge_v0"][tumbles], links["edge_v1"][tumbles]], axis=1).astype(np.int64)
     found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params)
-    catcher_hold = {"left": grasps["margin_hold_right"], "right": grasps["margin_hold_left"]}
+    catcher_hold = {"left": grasps["hold_right"], "right": grasps["hold_left"]}
     for a, b, (e0, e1), (arm, what, _) in zip(la, lb, tumble_edges, found, strict=True):
         pusher, why = (arm, "ok") if arm is not None else ("none", what)
         src = free_of_pose[a]
@@ -260,7 +260,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             continue
         for gb in by_pose.get(int(b), {}).values():
             st = why
-            if st == "ok" and not catcher_hold[pusher][gb] >= 0:
+            if st == "ok" and not catcher_hold[pusher][gb]:
                 st = "unstable"
             edges.append((src, gb, "tumble", w.tumble, st, -1, e0, e1, pusher))
     t3 = time.perf_counter()

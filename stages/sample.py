@@ -26,10 +26,10 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
-   the on-table support vertices and both balls must hold it. The margins recorded are, in SP, the
+   the on-table support vertices and both balls must hold it. The margin recorded is, in SP, the
    pivot margin on the first support corner (in hull vertex order) that holds, in USP the margin of
-   holding with both balls and those of holding with the left or the right ball alone (which a
-   regrasp in USP needs, §5.2.2; -1 when that ball alone cannot hold it). Every pose of a
+   holding with both balls; ``hold_left`` / ``hold_right`` say whether that ball alone holds the
+   USP (which a regrasp in USP needs, §5.2.2; a verdict only, its margin is never used). Every pose of a
    placement is its resting pose turned about the vertical and shifted, and the stability LP is
    invariant under that motion, so the pivot tests are solved once per (placement, pair, corner)
    and shared by all poses of the placement.
@@ -226,8 +226,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
         "contact_left": c_left[good].astype(np.int64),
         "contact_right": c_right[good].astype(np.int64),
         "margin": margins["margin"][g_sel],
-        "margin_hold_left": margins["hold_left"][g_sel],
-        "margin_hold_right": margins["hold_right"][g_sel],
+        "hold_left": margins["hold_left"][g_sel],
+        "hold_right": margins["hold_right"][g_sel],
         "pivot_vertices": [v for v, s in zip(margins["pivot_vertices"], g_sel, strict=True) if s],
         "q_left": list(q_l[good]),
         "q_right": list(q_r[good]),
@@ -263,7 +263,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
                            f_max=scene.robot.max_eef_force)
     corners = poses.pivot_corners(model, corner_cluster)
     half = np.asarray(scene.table.size) / 2
-    out = {"hold_left": np.full(N, np.nan), "hold_right": np.full(N, np.nan), "pivot_vertices": [None] * N,
+    out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,
            "margin": np.zeros(N)}
     usp = ps.support[pose_id] == "USP"
     g = ps.placement[pose_id]
@@ -339,12 +339,16 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
             return np.concatenate([a, a, a])
 
         res = evaluate(mass, three(com[us]), three(V), three(mask), three(eef_p[us]), three(eef_n[us]),
-                       em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]))
-        stable, margin = res.stable.reshape(3, n), res.margin.reshape(3, n)
+                       em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]), compute_margin=False)
+        stable = res.stable.reshape(3, n)
         out["stable"][us] = stable[0]
-        out["margin"][us] = margin[0]  # holding, not pivoting, is what a USP grasp must do first
-        out["hold_left"][us] = np.where(stable[1], margin[1], -1.0)
-        out["hold_right"][us] = np.where(stable[2], margin[2], -1.0)
+        out["hold_left"][us], out["hold_right"][us] = stable[1], stable[2]
+        # The margin of holding with both (not pivoting: holding is what a USP grasp must do first); a
+        # ball alone is only ever asked whether it holds, so its twelve margin LPs are not solved.
+        s0 = us[stable[0]]
+        m = evaluate(mass, com[s0], V[stable[0]], mask[stable[0]], eef_p[s0], eef_n[s0], None, L, prm,
+                     R_WD=X[s0, :3, :3], alpha=res.alpha[:n][stable[0]])
+        out["margin"][s0] = m.margin
     return out
 
 
@@ -360,8 +364,8 @@ LINK_FIELDS = [
 ]
 GRASP_FIELDS = [
     Field("grasp_id", "id"), Field("pose_id", "id"), Field("pair_id", "id"), Field("contact_left", "id"),
-    Field("contact_right", "id"), Field("margin", "N"), Field("margin_hold_left", "N"),
-    Field("margin_hold_right", "N"), Field("pivot_vertices", "id"), Field("q_left", "rad"), Field("q_right", "rad"),
+    Field("contact_right", "id"), Field("margin", "N"), Field("hold_left"),
+    Field("hold_right"), Field("pivot_vertices", "id"), Field("q_left", "rad"), Field("q_right", "rad"),
 ]
 REJECT_FIELDS = [Field("pose_id", "id"), Field("pair_id", "id"), Field("reason")]
 
