@@ -311,13 +311,14 @@ def tool_capsules(robot, arm: str) -> np.ndarray:
 
 
 def tool_clearance(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, mesh, samples: int = 11,
-                   exact_within: float = 0.05):
+                   exact_within: float = 0.01):
     """Clearance of the tool capsules (:func:`tool_capsules`) from the object, per row.
 
     ``q (T, n)``, ``X_WO (T, 4, 4)``; ``mesh`` the object (O). Points every ``1 / (samples - 1)`` of
     each capsule's segment against the mesh (``trimesh.proximity.closest_point``) less its radius;
-    a point farther than ``exact_within`` (m) from the mesh's convex hull gets its distance to the
-    hull (a lower bound, so a row's clearance is exact whenever it is below ``exact_within``).
+    a point farther than ``exact_within`` (m; above ``Params.stick_clearance``) from the mesh's
+    convex hull gets its distance to the hull (a lower bound, so a row's clearance is exact whenever
+    it is below ``exact_within``).
     Returns ``clearance (T,)`` (m), ``p (T, 3)`` the nearest tool point and ``g (T, 3)`` the unit
     direction from the object to it (W).
     """
