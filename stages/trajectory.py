@@ -311,14 +311,13 @@ def tool_capsules(robot, arm: str) -> np.ndarray:
 
 
 def tool_clearance(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, mesh, samples: int = 11,
-                   exact_within: float = 0.01):
+                   exact_within: float = np.inf):
     """Clearance of the tool capsules (:func:`tool_capsules`) from the object, per row.
 
     ``q (T, n)``, ``X_WO (T, 4, 4)``; ``mesh`` the object (O). Points every ``1 / (samples - 1)`` of
     each capsule's segment against the mesh (``trimesh.proximity.closest_point``) less its radius;
-    a point farther than ``exact_within`` (m; above ``Params.stick_clearance``) from the mesh's
-    convex hull gets its distance to the hull (a lower bound, so a row's clearance is exact whenever
-    it is below ``exact_within``).
+    a point farther than ``exact_within`` (m) from the mesh's convex hull gets its distance to the
+    hull (a lower bound, so a row's clearance is exact whenever it is below ``exact_within``).
     Returns ``clearance (T,)`` (m), ``p (T, 3)`` the nearest tool point and ``g (T, 3)`` the unit
     direction from the object to it (W).
     """
@@ -406,6 +405,7 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
     X, kind = rows["X"], rows["kind"]
     T = len(X)
     ramp = max(int(round(params.stick_ramp / dt)), 1)
+    exact = params.stick_clearance + 0.004  # which rows turn, and by how much, only needs this much exact
     out = []
     for arm, qk, ck in (("left", "q_l", "c_l"), ("right", "q_r", "c_r")):
         a = robot.arm(arm)
@@ -416,7 +416,7 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
             if np.any(kind[s:e] == "tumble"):
                 continue
             q = rows[qk][s:e]
-            clear, p_tool, g = tool_clearance(robot, arm, q, X[s:e], env.mesh)
+            clear, p_tool, g = tool_clearance(robot, arm, q, X[s:e], env.mesh, exact_within=exact)
             need = clear < params.stick_clearance
             rec = {"arm": arm, "rows": [int(s), int(e)], "clearance": float(clear.min())}
             if not need.any():
@@ -445,7 +445,7 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
             R_t = Rotation.from_rotvec(rv * spread[:, None]).as_matrix() @ R_ball
             q_new, err = _ik_pose(robot, arm, c_ball, R_t, q)
             q_new[spread == 0.0] = q[spread == 0.0]
-            clear_new = tool_clearance(robot, arm, q_new, X[s:e], env.mesh)[0]
+            clear_new = tool_clearance(robot, arm, q_new, X[s:e], env.mesh, exact_within=exact)[0]
             rec["clearance_after"] = float(clear_new.min())
             why = "ok"
             ends = np.abs(np.concatenate([q_new[:1] - q[:1], q_new[-1:] - q[-1:]])).max()
