@@ -225,6 +225,10 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     new = _State(dict(state.q), dict(state.normal), Xa)
     catcher = "right" if pusher == "left" else "left"
     into_usp = nodes["kind"][v] == "grasp"
+    if into_usp and params.check_mpc:  # the catcher's contact must lower the object into USP and hold it
+        why = _usp_tumble_mpc(ctx, params, Xa, e0, e1, c, ctx.contact(gv, catcher))
+        if why:
+            return False, "mpc_infeasible", step, state
     transits = {}
     if into_usp:  # the catcher first goes where the object will land on it (Fig. 18 b, c)
         res = _transit(ctx, params, new, catcher, ctx.q_grasp[catcher][gv], None)
@@ -250,6 +254,24 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         step["transit"][f"{pusher}_after"] = res.path.tolist()
         step.update(grasp_to=gv, catcher=catcher)
     return True, "ok", step, new
+
+
+def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_catch: int) -> str:
+    """Why the tumbling MPC of ``stages.trajectory`` cannot roll the object from ``Xa`` over edge
+    (e0, e1) into USP with these pusher and catcher contacts ("" when it can)."""
+    from stages import trajectory  # it imports this module's neighbours, not this module
+
+    tp = trajectory.TumbleParams()
+    mp = _mpc_params(ctx, params)
+    roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
+    th_r = trajectory.release_angle(ctx.model, roll, GraphParams(), tp)
+    if roll.total < th_r + np.radians(5.0):
+        return "the landing comes before the release"
+    t, theta, on_p = trajectory.tumble_profile(roll, th_r, roll.total, tp, mp.dt)
+    out = trajectory.tumble_mpc(ctx.scene.object.mass, np.asarray(ctx.tables["summary"]["inertia"]), ctx.model,
+                                roll, theta, t, roll.poses(theta), on_p, ctx.p_O[[c_push, c_catch]],
+                                ctx.n_O[[c_push, c_catch]], mp)
+    return out if isinstance(out, str) else ""
 
 
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
