@@ -12,7 +12,9 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
   friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
   ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
-- **tumble**: the pusher's transit to its contact, and the push along the rotation. Into USP
+- **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
+  object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
+  posture (``{other}_before``), where the graph's pusher check has it. Into USP
   (Fig. 18 b–f) the catcher first moves to its contact of the destination grasp while the object
   still stands (``{catcher}_before``), and after the push the pusher moves to its own contact of that
   grasp while the catcher holds (``{pusher}_after``): a regrasp in USP.
@@ -230,6 +232,14 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         if why:
             return False, "mpc_infeasible", step, state
     transits = {}
+    if not into_usp and _in_the_way(ctx, state, catcher, pusher, q_push[-1], Xa, e0, e1):
+        # Into SP the other arm must be away, as the graph's pusher check has it (at rest): where the
+        # last grasp left it, the object would fall onto it (then no transit could start there).
+        res = _transit(ctx, params, new, catcher, ctx.robot.arm(catcher).q_rest, None)
+        if res.status != "ok":
+            return False, res.status, step, state
+        new.q[catcher], new.normal[catcher] = res.path[-1], None
+        transits[f"{catcher}_before"] = res.path.tolist()
     if into_usp:  # the catcher first goes where the object will land on it (Fig. 18 b, c)
         res = _transit(ctx, params, new, catcher, ctx.q_grasp[catcher][gv], None)
         if res.status != "ok":
@@ -254,6 +264,23 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         step["transit"][f"{pusher}_after"] = res.path.tolist()
         step.update(grasp_to=gv, catcher=catcher)
     return True, "ok", step, new
+
+
+def _in_the_way(ctx: _Context, state: _State, idle: str, pusher: str, q_push_end, Xa, e0, e1,
+                samples: int = 8) -> bool:
+    """Whether the object, rolling over edge (e0, e1) from ``Xa`` past the pusher's release to its
+    landing, hits the idle arm where it is (the pusher at the end of its push)."""
+    from stages import trajectory  # it imports this module's neighbours, not this module
+
+    roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
+    X = roll.poses(np.linspace(min(GraphParams().push_angle, roll.total), roll.total, samples))
+    q = {idle: state.q[idle], pusher: q_push_end}
+    k = ("left", "right").index(idle)
+    touching = np.zeros((samples, 2), bool)
+    touching[:, 1 - k] = True  # the pusher's ball has just let go
+    ok, _, arms = ctx.collide(np.broadcast_to(q["left"], (samples, len(q["left"]))),
+                              np.broadcast_to(q["right"], (samples, len(q["right"]))), X, touching, blame=True)
+    return bool(np.any(~ok & arms[:, k]))
 
 
 def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_catch: int) -> str:

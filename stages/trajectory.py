@@ -32,7 +32,9 @@ with the motion at rest at every switch. The other arm is the **catcher**: its b
 that lands (the "back" the object falls onto), high up, and both balls follow the rotation:
 
 1. the pusher takes its contact (the plan's transit), the catcher its own (a transit planned here,
-   ``stages.transit.plan_transit``); both contacts switch on together (a squeeze from both sides);
+   ``stages.transit.plan_transit``; into SP from its rest posture when the plan first moves it there,
+   ``{catcher}_before``, out of the object's way); both contacts switch on together (a squeeze from
+   both sides);
 2. *push*: both rotate the object to the release angle (the plan's ``push_angle`` of
    ``stages.graph``, at least ``release_past_tip`` past the angle where the CoM crosses the axis);
 3. *release*: the object pauses while the pusher's force ramps out and the catcher takes the load;
@@ -825,6 +827,9 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if found is None or c_found != c_p:
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
     usp = "grasp_to" in step
+    before = step.get("transit", {}).get(f"{catcher}_before")
+    if not usp and before is not None:  # the plan moves the other arm out of the object's way first
+        tl.move_arm(catcher, before, X_from, k, -1)
     q_after = {pusher: q_push[-1], catcher: tl.q[catcher]}
     if usp:  # the plan moves the catcher onto the destination grasp before the push, the pusher after it
         q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
