@@ -12,7 +12,9 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
   friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
   ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
-- **tumble**: the pusher's transit to its contact, and the push along the rotation. Into USP
+- **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
+  object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
+  posture (``{other}_before``), where the graph's pusher check has it. Into USP
   (Fig. 18 b–f) the catcher first moves to its contact of the destination grasp while the object
   still stands (``{catcher}_before``), and after the push the pusher moves to its own contact of that
   grasp while the catcher holds (``{pusher}_after``): a regrasp in USP.
@@ -225,7 +227,19 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     new = _State(dict(state.q), dict(state.normal), Xa)
     catcher = "right" if pusher == "left" else "left"
     into_usp = nodes["kind"][v] == "grasp"
+    if into_usp and params.check_mpc:  # the catcher's contact must lower the object into USP and hold it
+        why = _usp_tumble_mpc(ctx, params, Xa, e0, e1, c, ctx.contact(gv, catcher))
+        if why:
+            return False, "mpc_infeasible", step, state
     transits = {}
+    if not into_usp and _in_the_way(ctx, state, catcher, pusher, q_push[-1], Xa, e0, e1):
+        # Into SP the other arm must be away, as the graph's pusher check has it (at rest): where the
+        # last grasp left it, the object would fall onto it (then no transit could start there).
+        res = _transit(ctx, params, new, catcher, ctx.robot.arm(catcher).q_rest, None)
+        if res.status != "ok":
+            return False, res.status, step, state
+        new.q[catcher], new.normal[catcher] = res.path[-1], None
+        transits[f"{catcher}_before"] = res.path.tolist()
     if into_usp:  # the catcher first goes where the object will land on it (Fig. 18 b, c)
         res = _transit(ctx, params, new, catcher, ctx.q_grasp[catcher][gv], None)
         if res.status != "ok":
@@ -250,6 +264,41 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         step["transit"][f"{pusher}_after"] = res.path.tolist()
         step.update(grasp_to=gv, catcher=catcher)
     return True, "ok", step, new
+
+
+def _in_the_way(ctx: _Context, state: _State, idle: str, pusher: str, q_push_end, Xa, e0, e1,
+                samples: int = 8) -> bool:
+    """Whether the object, rolling over edge (e0, e1) from ``Xa`` past the pusher's release to its
+    landing, hits the idle arm where it is (the pusher at the end of its push)."""
+    from stages import trajectory  # it imports this module's neighbours, not this module
+
+    roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
+    X = roll.poses(np.linspace(min(GraphParams().push_angle, roll.total), roll.total, samples))
+    q = {idle: state.q[idle], pusher: q_push_end}
+    k = ("left", "right").index(idle)
+    touching = np.zeros((samples, 2), bool)
+    touching[:, 1 - k] = True  # the pusher's ball has just let go
+    ok, _, arms = ctx.collide(np.broadcast_to(q["left"], (samples, len(q["left"]))),
+                              np.broadcast_to(q["right"], (samples, len(q["right"]))), X, touching, blame=True)
+    return bool(np.any(~ok & arms[:, k]))
+
+
+def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_catch: int) -> str:
+    """Why the tumbling MPC of ``stages.trajectory`` cannot roll the object from ``Xa`` over edge
+    (e0, e1) into USP with these pusher and catcher contacts ("" when it can)."""
+    from stages import trajectory  # it imports this module's neighbours, not this module
+
+    tp = trajectory.TumbleParams()
+    mp = _mpc_params(ctx, params)
+    roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
+    th_r = trajectory.release_angle(ctx.model, roll, GraphParams(), tp)
+    if roll.total < th_r + np.radians(5.0):
+        return "the landing comes before the release"
+    t, theta, on_p = trajectory.tumble_profile(roll, th_r, roll.total, tp, mp.dt)
+    out = trajectory.tumble_mpc(ctx.scene.object.mass, np.asarray(ctx.tables["summary"]["inertia"]), ctx.model,
+                                roll, theta, t, roll.poses(theta), on_p, ctx.p_O[[c_push, c_catch]],
+                                ctx.n_O[[c_push, c_catch]], mp)
+    return out if isinstance(out, str) else ""
 
 
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):

@@ -32,7 +32,9 @@ with the motion at rest at every switch. The other arm is the **catcher**: its b
 that lands (the "back" the object falls onto), high up, and both balls follow the rotation:
 
 1. the pusher takes its contact (the plan's transit), the catcher its own (a transit planned here,
-   ``stages.transit.plan_transit``); both contacts switch on together (a squeeze from both sides);
+   ``stages.transit.plan_transit``; into SP from its rest posture when the plan first moves it there,
+   ``{catcher}_before``, out of the object's way); both contacts switch on together (a squeeze from
+   both sides);
 2. *push*: both rotate the object to the release angle (the plan's ``push_angle`` of
    ``stages.graph``, at least ``release_past_tip`` past the angle where the CoM crosses the axis);
 3. *release*: the object pauses while the pusher's force ramps out and the catcher takes the load;
@@ -838,6 +840,9 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if found is None or c_found != c_p:
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
     usp = "grasp_to" in step
+    before = step.get("transit", {}).get(f"{catcher}_before")
+    if not usp and before is not None:  # the plan moves the other arm out of the object's way first
+        tl.move_arm(catcher, before, X_from, k, -1)
     q_after = {pusher: q_push[-1], catcher: tl.q[catcher]}
     if usp:  # the plan moves the catcher onto the destination grasp before the push, the pusher after it
         q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
@@ -847,18 +852,8 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if not len(candidates):
         raise TumbleError("no_catcher", f"step {k}: no contact on the landing face")
 
-    # The release angle: the plan's push, and past the angle where the CoM crosses over the axis.
+    th_r = release_angle(model, roll, gp, P)
     grid = np.linspace(0.0, roll.total, 721)
-    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
-    th_r = max(gp.push_angle, th_tip + P.release_past_tip)
-    knots_hi = np.r_[roll.switches, roll.total]
-
-    def pieces(a, b, duration):
-        """Knots from a to b stopping at every axis switch between them, durations by angle."""
-        ks = np.r_[a, knots_hi[(knots_hi > a + 1e-9) & (knots_hi < b - 1e-9)], b]
-        d = np.diff(ks) / max(b - a, 1e-12) * duration
-        return list(ks[1:]), list(np.maximum(d, 0.25))
-
     why, pusher_paths, found = "no candidate", {}, None
     half = np.asarray(env.scene.table.size) / 2
     for c in candidates:  # a handful, best first
@@ -874,10 +869,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         if th_c < th_r + np.radians(5.0):
             why = f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release"
             continue
-        k1, d1 = pieces(0.0, th_r, P.push_time)
-        k2, d2 = pieces(th_r, th_c, P.catch_time)
-        t_prof, theta = mpc.knot_profile([0.0, 0.0, *k1, th_r, *k2], [P.grip_time, *d1, P.release_dwell, *d2], dt)
-        on_p = t_prof < P.grip_time + sum(d1) + P.release_dwell / 2 - 1e-9
+        t_prof, theta, on_p = tumble_profile(roll, th_r, th_c, P, dt)
         X_ref = roll.poses(theta)
         n_rel = int(np.count_nonzero(on_p))
         if n_rel not in pusher_paths:  # the same for every catcher
@@ -908,27 +900,16 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
 
     # Forces: the tumbling MPC, one run per segment of the roll (at rest at every switch).
-    seg = np.array([roll.segment_of(th) for th in theta])
-    X_mpc, f_mpc, f_tab = X_ref.copy(), np.zeros((T, 2, 3)), np.zeros((T, 3))
-    errs = []
-    for s_id in np.unique(seg):  # one to three segments
-        rows = np.flatnonzero(seg == s_id)
-        if len(rows) < 2:
-            f_mpc[rows] = f_mpc[max(rows[0] - 1, 0)]
-            continue
-        p_edge = se3.transform_points(roll.X_seg[s_id], model.vertices[roll.edge[s_id]])
-        res = mpc.run_tumble_mpc(env.scene.object.mass, env.inertia, model.com, env.p_O[[c_p, c]],
-                                 -env.n_O[[c_p, c]], p_edge, t_prof[rows] - t_prof[rows[0]], X_ref[rows],
-                                 env.mp, contact_mask=np.stack([on_p[rows], np.ones(len(rows), bool)], axis=1))
-        if res.status != "ok":
-            why = f"step {k}: the tumbling MPC fails at row {res.fail_step} of segment {s_id} ({res.fail_reason})"
-            if mode == "hold" and not on_p[rows[min(res.fail_step, len(rows) - 1)]]:
-                off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
-                why += (f": after the release the destination grasp's catching contact {c} (its normal "
-                        f"{off:.0f} deg from the landing face's) cannot hold the object alone")
-            raise TumbleError("mpc_infeasible", why)
-        X_mpc[rows], f_mpc[rows], f_tab[rows] = res.X_WO, res.f_eef_W, res.f_table_W
-        errs.append(float(np.max(res.tracking_error)))
+    out = tumble_mpc(env.scene.object.mass, env.inertia, model, roll, theta, t_prof, X_ref, on_p,
+                     env.p_O[[c_p, c]], env.n_O[[c_p, c]], env.mp)
+    if isinstance(out, str):
+        why = f"step {k}: {out}"
+        if mode == "hold" and "after the release" in out:
+            off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
+            why += (f": the destination grasp's catching contact {c} (its normal {off:.0f} deg from the "
+                    f"landing face's) cannot hold the object alone")
+        raise TumbleError("mpc_infeasible", why)
+    X_mpc, f_mpc, f_tab, errs = out
 
     ip, ic = (0, 1)
     tl.move_arm(pusher, step["transit"][pusher], X_from, k, -1)
@@ -986,6 +967,56 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
+
+
+def release_angle(model, roll: Roll, gp: GraphParams, P: TumbleParams) -> float:
+    """The pusher's release angle: the plan's push, and ``release_past_tip`` past the angle where the
+    CoM crosses over the axis."""
+    grid = np.linspace(0.0, roll.total, 721)
+    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
+    return max(gp.push_angle, th_tip + P.release_past_tip)
+
+
+def tumble_profile(roll: Roll, th_r: float, th_c: float, P: TumbleParams, dt: float):
+    """``(t, theta, pusher_on)``: grip, push to ``th_r``, release dwell, catch to ``th_c``; knots at every
+    axis switch, durations by angle (module docstring, "Tumble")."""
+    knots_hi = np.r_[roll.switches, roll.total]
+
+    def pieces(a, b, duration):
+        ks = np.r_[a, knots_hi[(knots_hi > a + 1e-9) & (knots_hi < b - 1e-9)], b]
+        d = np.diff(ks) / max(b - a, 1e-12) * duration
+        return list(ks[1:]), list(np.maximum(d, 0.25))
+
+    k1, d1 = pieces(0.0, th_r, P.push_time)
+    k2, d2 = pieces(th_r, th_c, P.catch_time)
+    t_prof, theta = mpc.knot_profile([0.0, 0.0, *k1, th_r, *k2], [P.grip_time, *d1, P.release_dwell, *d2], dt)
+    on_p = t_prof < P.grip_time + sum(d1) + P.release_dwell / 2 - 1e-9
+    return t_prof, theta, on_p
+
+
+def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O, n_O, mp: mpc.Params):
+    """The tumbling MPC along a roll, one run per segment (at rest at every switch): pusher and catcher
+    contacts ``p_O, n_O (2, 3)`` (outward normals), the pusher on while ``on_p``. Returns
+    ``(X, f_eef (T, 2, 3), f_table, max errors)`` or the reason it fails."""
+    T = len(theta)
+    seg = np.array([roll.segment_of(th) for th in theta])
+    X_mpc, f_mpc, f_tab = X_ref.copy(), np.zeros((T, 2, 3)), np.zeros((T, 3))
+    errs = []
+    for s_id in np.unique(seg):  # one to three segments
+        rows = np.flatnonzero(seg == s_id)
+        if len(rows) < 2:
+            f_mpc[rows] = f_mpc[max(rows[0] - 1, 0)]
+            continue
+        p_edge = se3.transform_points(roll.X_seg[s_id], model.vertices[roll.edge[s_id]])
+        res = mpc.run_tumble_mpc(mass, inertia, model.com, p_O, -n_O, p_edge, t_prof[rows] - t_prof[rows[0]],
+                                 X_ref[rows], mp, contact_mask=np.stack([on_p[rows], np.ones(len(rows), bool)], 1))
+        if res.status != "ok":
+            when = "before" if on_p[rows[min(res.fail_step, len(rows) - 1)]] else "after"
+            return (f"the tumbling MPC fails at row {res.fail_step} of segment {s_id} ({res.fail_reason}, "
+                    f"{when} the release)")
+        X_mpc[rows], f_mpc[rows], f_tab[rows] = res.X_WO, res.f_eef_W, res.f_table_W
+        errs.append(float(np.max(res.tracking_error)))
+    return X_mpc, f_mpc, f_tab, errs
 
 
 def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
