@@ -18,11 +18,12 @@ Frames use Drake's monogram notation (see STYLE.md): ``X_WB`` is the robot base 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -313,7 +314,10 @@ class IKParams:
 
 @dataclass(frozen=True, eq=False)
 class Robot:
-    """A dual-arm robot with its trunk held still; build it with ``load_robot``."""
+    """A dual-arm robot with its trunk held still; build it with ``load_robot``.
+
+    ``_cache`` holds what is derived from the robot alone (``_self_pairs``, ``Robot._library``); robots
+    loaded with the same inputs share it."""
 
     urdf_path: Path
     X_WB: np.ndarray  # (4, 4) base link in the world
@@ -725,9 +729,20 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
         raise InputError(f"{path}: the arms have {arms['left'].dof} and {arms['right'].dof} joints")
 
     static = _make_static(path, links, X_W, arm_links)
-    robot = Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
-                  ik_params=ik_params or IKParams())
-    return robot
+    ik_params = ik_params or IKParams()
+    # What the robot derives from these inputs alone (self-collision pairs, IK seed libraries: a few
+    # tenths of a second) is shared by every robot loaded with the same inputs in this process, so
+    # stages run one after another in one process (``make bench``, the tests) derive it once.
+    key = (hashlib.sha256(path.read_bytes()).hexdigest(), X_WB.tobytes(), tuple(eef_links), float(torso_angle),
+           arms["left"].q_rest.tobytes(), arms["right"].q_rest.tobytes(), ik_params)
+    return Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
+                 ik_params=ik_params, _cache=_shared_cache(key))
+
+
+@lru_cache(maxsize=8)
+def _shared_cache(key: tuple) -> dict:
+    """One cache dict per distinct robot (``load_robot``); a handful are kept."""
+    return {}
 
 
 def _make_arm(path, name, root, chain, links, joints, X_W, q_rest) -> Arm:
