@@ -1024,6 +1024,11 @@ def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.tensordot(X_inv[:3, :3], P, axes=1) + t
 
 
+def _rows(X: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``X[..., rows]`` for sorted distinct ``rows``; ``X`` itself, not a copy, when they are all its rows."""
+    return X if len(rows) == X.shape[-1] else X[..., rows]
+
+
 def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), object_mesh=None,
                       margin: float = 0.0, table_depth: float = 1.0, threads: int = 1) -> CollisionFn:
     """Build a batched collision checker for both arms of ``robot`` in a scene (paper §4.2).
@@ -1148,7 +1153,7 @@ class CollisionFn:
         for name, Xi, h in self.boxes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, mids[s][:, :, rows]), h[:, None, None])
+                c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, _rows(mids[s], rows)), h[:, None, None])
                                   <= (rho[s] + mg) ** 2)
                 r = rows[k]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
@@ -1158,7 +1163,7 @@ class CollisionFn:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 erho = np.linalg.norm(eb - ea) / 2 + er
-                dm = mids[s][:, :, rows] - ((ea + eb) / 2)[:, None, None]
+                dm = _rows(mids[s], rows) - ((ea + eb) / 2)[:, None, None]
                 c, k = np.nonzero(_dot(dm, dm) <= (rho[s] + erho + mg) ** 2)
                 r = rows[k]
                 ones = np.ones(len(c))
@@ -1168,7 +1173,7 @@ class CollisionFn:
         for name, Xi, rad, hh in self.cyls:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                Pm = _to_frame(Xi, mids[s][:, :, rows])
+                Pm = _to_frame(Xi, _rows(mids[s], rows))
                 dm = _point_cyl_dist(Pm.reshape(3, -1), rad, hh).reshape(Pm.shape[1:])
                 c, k = np.nonzero(dm <= rho[s] + mg)
                 r = rows[k]
@@ -1177,7 +1182,7 @@ class CollisionFn:
         for name, Xi, msh in self.meshes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), A[:, :, rows], B[:, :, rows],
+                k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), _rows(A, rows), _rows(B, rows),
                                   a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
                 st.fail(rows[k], "env_collision", names[s][c], name, s)
 
@@ -1190,7 +1195,7 @@ class CollisionFn:
                 if not len(cc):
                     continue
                 rows, Xi, h = st.live(), self.box_inv[kb], trunk.box_half[kb]
-                p, k = np.nonzero(_point_box_dist2(_to_frame(Xi, M[:, cc[:, None], rows]), h[:, None, None])
+                p, k = np.nonzero(_point_box_dist2(_to_frame(Xi, _rows(M[:, cc], rows)), h[:, None, None])
                                   <= (rh[cc] + mg) ** 2)
                 r, c = rows[k], cc[p]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
@@ -1208,13 +1213,13 @@ class CollisionFn:
 
         # Self: left against right, only on rows whose arms' bounding boxes overlap.
         rows = st.live()
-        box = [(np.min(np.minimum(A, B)[:, :, rows] - a.cap_r[:, None], axis=1),
-                np.max(np.maximum(A, B)[:, :, rows] + a.cap_r[:, None], axis=1))
+        box = [(np.min(_rows(np.minimum(A, B), rows) - a.cap_r[:, None], axis=1),
+                np.max(_rows(np.maximum(A, B), rows) + a.cap_r[:, None], axis=1))
                for a, (A, B) in zip(arms, ends, strict=True)]
         rows = rows[np.all((box[0][0] <= box[1][1] + mg) & (box[1][0] <= box[0][1] + mg), axis=0)]
         if len(rows) and len(self.lr_pairs):
             i, j = self.lr_pairs.T
-            dm = mids[0][:, i[:, None], rows] - mids[1][:, j[:, None], rows]
+            dm = _rows(mids[0], rows)[:, i] - _rows(mids[1], rows)[:, j]
             p, k = np.nonzero(_dot(dm, dm) <= (rho[0][i] + rho[1][j] + mg) ** 2)
             r = rows[k]
             (Al, Bl), (Ar, Br) = ends
@@ -1230,7 +1235,8 @@ class CollisionFn:
             rows = st.live()
             (A, B), M, rh = ends[s], mids[s], rho[s]
             i, j = self.intra_pairs[s].T
-            dm = M[:, i[:, None], rows] - M[:, j[:, None], rows]
+            Mr = _rows(M, rows)
+            dm = Mr[:, i] - Mr[:, j]
             p, k = np.nonzero(_dot(dm, dm) <= (rh[i] + rh[j] + mg) ** 2)
             r = rows[k]
             hit = _seg_seg_dist2(A[:, i[p], r], B[:, i[p], r], A[:, j[p], r], B[:, j[p], r]) \
@@ -1247,7 +1253,7 @@ class CollisionFn:
                 A, B = ends[s]
                 test = np.ones((len(a.cap_names), len(rows)), bool)
                 test[a.cap_link == a.eef_index] = ~touch[rows, s]
-                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), A[:, :, rows], B[:, :, rows],
+                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), _rows(A, rows), _rows(B, rows),
                                   a.cap_r, mg, test)
                 st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
         return st.alive, st.reason.astype(str), st.blame
@@ -1375,11 +1381,11 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
 
     # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
     # mesh's bounding box grown by the capsule radius.
-    R, t = X_OW[:, :3, :3], X_OW[:, :3, 3]
+    R, t = np.ascontiguousarray(np.moveaxis(X_OW[:, :3, :3], 0, -1)), np.ascontiguousarray(X_OW[:, :3, 3].T)
     rr = radius + margin
 
     def to_mesh(P):
-        return np.stack([R[:, i, 0] * P[0] + R[:, i, 1] * P[1] + R[:, i, 2] * P[2] + t[:, i] for i in range(3)])
+        return np.stack([R[i, 0] * P[0] + R[i, 1] * P[1] + R[i, 2] * P[2] + t[i] for i in range(3)])
 
     Ao, Bo = to_mesh(A), to_mesh(B)
     grow = rr[:, None]
