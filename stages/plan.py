@@ -127,23 +127,30 @@ def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, 
     G = nx.DiGraph()
     G.add_nodes_from(nodes["node_id"].tolist())
     usp = nodes["support"] == "USP"
-    for i in np.flatnonzero(edges["status"] == "ok"):  # a few thousand edges
-        a, b, prim = int(edges["node_a"][i]), int(edges["node_b"][i]), str(edges["primitive"][i])
-        if params.no_tumble and prim == "tumble":
-            continue
-        if params.no_usp and (usp[a] or usp[b]):
-            continue
-        data = {"weight": float(edges["weight"][i]), "edge_id": int(i), "primitive": prim}
+    ok = np.flatnonzero(edges["status"] == "ok")
+    a_all, b_all = edges["node_a"][ok], edges["node_b"][ok]
+    keep = np.ones(len(ok), bool)
+    if params.no_tumble:
+        keep &= edges["primitive"][ok] != "tumble"
+    if params.no_usp:
+        keep &= ~(usp[a_all] | usp[b_all])
+    arcs = []  # (a, b, data) in edge order, both ways for undirected edges
+    for i, a, b, prim, weight, directed in zip(ok[keep].tolist(), a_all[keep].tolist(), b_all[keep].tolist(),
+                                               edges["primitive"][ok[keep]].tolist(),
+                                               edges["weight"][ok[keep]].tolist(),
+                                               edges["directed"][ok[keep]].tolist(), strict=True):
+        data = {"weight": weight, "edge_id": i, "primitive": prim}
         if params.no_regrasp and prim == "regrasp":
             # Only the first grasp (out of the start's free node) and the final release (into the goal's).
             if a == start or b == goal:
-                G.add_edge(a, b, **data)
+                arcs.append((a, b, data))
             if b == start or a == goal:
-                G.add_edge(b, a, **data)
+                arcs.append((b, a, data))
             continue
-        G.add_edge(a, b, **data)
-        if not edges["directed"][i]:
-            G.add_edge(b, a, **data)
+        arcs.append((a, b, data))
+        if not directed:
+            arcs.append((b, a, data))
+    G.add_edges_from(arcs)
     return G, start, goal
 
 
