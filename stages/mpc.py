@@ -1095,9 +1095,18 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
     kj = np.arange(T)[:, None] + j0
     Ma_kj, TMa_kj, Na_kj, ca_kj = ref_base.Ma[kj], TMa[kj], ref_base.Na[kj], ref_base.ca[kj]
     G_kj = [G[kj] for G in ref_G]
-    by_mask: dict = {}  # contact schedule over the horizon -> the QP parts it alone fixes
-
-    def mask_parts(m_st):
+    # The contact schedule over each step's horizon fixes the input maps U and what follows from them
+    # alone; the products of U with the reference's stage matrices are taken for all steps at once.
+    windows = [mask_pad[k:k + N] for k in range(T)]
+    keys = [m.tobytes() for m in windows]
+    n_tab = lay.nk * model.n_support * 6  # table rows
+    by_mask: dict = {}
+    BBU = np.empty((T, N, nx, lay.nz))  # B_j U_j of step k's stages
+    NaU = np.empty((T, len(j0), nr, lay.nz))  # Na U at its later knots
+    HuU = np.empty((T, len(j0), model.n_support, 6, lay.nz))  # the table rows' u part there
+    for key in dict.fromkeys(keys):  # each distinct schedule, once
+        ks = np.array([k for k in range(T) if keys[k] == key])
+        m_st = windows[ks[0]]
         U = lay.input_maps(m_st)
         U2 = U.reshape(N * 6, lay.nz)
         # EEF rows at every knot whose value a touching stage uses (linear in O, so the
@@ -1106,8 +1115,12 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         G_eef = np.zeros((len(bb), 7, lay.nz))
         cols = (6 * bb + 3 * ii)[:, None] + np.arange(3)
         G_eef[np.arange(len(bb))[:, None, None], np.arange(7)[None, :, None], cols[:, None, :]] = H_eef[ii]
-        return (U, params.beta * (U2.T @ U2), G_eef.reshape(-1, lay.nz), np.tile(hl_eef1, len(bb)),
-                np.tile(hu_eef1, len(bb)), U[0], U[j0], U[j0][:, None])
+        by_mask[key] = (U, params.beta * (U2.T @ U2), G_eef.reshape(-1, lay.nz),
+                        np.concatenate([np.tile(hl_eef1, len(bb)), np.full(n_tab, -np.inf)]),
+                        np.tile(hu_eef1, len(bb)), U[0])
+        BBU[ks] = base_B[ks[:, None] + np.arange(N)] @ U
+        NaU[ks] = Na_kj[ks] @ U[j0]
+        HuU[ks] = G_kj[1][ks] @ U[j0][:, None]
 
     X_WO = np.full((T, 4, 4), np.nan)
     omega_W = np.full((T, 3), np.nan)
@@ -1124,13 +1137,15 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
     p_A_W = p_support_W[0]
     Ss = np.empty((N + 1, nx, lay.nz + 1))  # the condensed prediction, see below
     Ss[0] = 0.0
+    BU = np.empty((N, nx, lay.nz + 1))
+    Ss_j, BU_j = list(Ss), list(BU)  # views of each stage
     diag = np.arange(lay.nz) * (lay.nz + 1)  # flat indices of the QP's diagonal
     for k in range(T):
         X_WO[k, :3, :3] = R
         X_WO[k, :3, 3] = p_A_W - R @ model.p_A_O
         X_WO[k, 3] = (0.0, 0.0, 0.0, 1.0)
         delta0 = _log_so3(R @ R_ref[k].T)
-        err[k] = np.linalg.norm(delta0)
+        err[k] = np.sqrt(delta0.dot(delta0))  # np.linalg.norm's own formula
         omega0 = R @ model.P_O @ nu if lay.edge else nu  # nu is omega_W itself about a vertex
         omega_W[k] = omega0
         # Stages linearised along the reference (the state enters through x0), with the forces
@@ -1141,18 +1156,17 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         lin_A = base_A[sl] + np.einsum("nl,nlij->nij", f6, TA[sl])
         lin_D = base_D[sl] + np.einsum("nl,nli->ni", f6, TD[sl])
         Ma_j0 = Ma_kj[k] + np.einsum("nl,nlij->nij", f6[j0], TMa_kj[k])
-        m_st = mask_pad[k:k + N]
-        key = m_st.tobytes()
-        if key not in by_mask:
-            by_mask[key] = mask_parts(m_st)
-        U, P_u, G_eef, hl_eef, hu_eef, U_0, U_j0, U_j0x = by_mask[key]
+        U, P_u, G_eef, hl_pre, hu_eef, U_0 = by_mask[keys[k]]
 
         # Condense: [S_j | s_j] with x_j = S_j z + s_j, u_j = U_j z.
-        BU = np.concatenate([base_B[sl] @ U, lin_D[:, :, None]], axis=2)  # (N, nx, nz + 1)
+        BU[:, :, :-1] = BBU[k]
+        BU[:, :, -1] = lin_D
         Ss[0, :nr, -1] = ref_terms["Pt"][k] @ delta0  # x0
         Ss[0, nr:, -1] = nu
         for j in range(N):
-            np.add(np.matmul(lin_A[j], Ss[j]), BU[j], out=Ss[j + 1])
+            S_next = Ss_j[j + 1]
+            np.matmul(lin_A[j], Ss_j[j], out=S_next)
+            S_next += BU_j[j]
         S_all, s_all = Ss[:, :, :-1], Ss[:, :, -1]
         x_ref = np.concatenate([np.zeros((N, nr)), nu_ref[k + 1:k + N + 1]], axis=1)
         Sx = S_all[1:].reshape(N * nx, lay.nz)
@@ -1169,10 +1183,10 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         hu_tab = [-np.einsum("vri,vi->vr", H_table, F_c)[None]]
         # Later knots: along the reference, through the predicted nu'_j = Ma x_j + Na u_j + ca.
         if len(j0):
-            H_nu, H_u, h_0 = G_kj[0][k], G_kj[1][k], G_kj[2][k]
-            nud_z = Ma_j0 @ S_all[j0] + Na_kj[k] @ U_j0  # (nj, nr, nz)
+            H_nu, h_0 = G_kj[0][k], G_kj[2][k]
+            nud_z = Ma_j0 @ S_all[j0] + NaU[k]  # (nj, nr, nz)
             nud_c = np.einsum("bij,bj->bi", Ma_j0, s_all[j0]) + ca_kj[k]
-            G_tab.append(H_nu @ nud_z[:, None] + H_u @ U_j0x)
+            G_tab.append(H_nu @ nud_z[:, None] + HuU[k])
             hu_tab.append(-(np.einsum("bvrj,bj->bvr", H_nu, nud_c) + h_0))
         G_tab = np.concatenate(G_tab)  # (nk, nv, 6, nz)
         hu_tab = np.concatenate(hu_tab).reshape(-1)
@@ -1186,7 +1200,7 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         s_err = s_all[lay.err_idx, :nr].reshape(-1)
 
         G = np.asfortranarray(np.concatenate([G_eef, G_tab, G_err]))
-        h_l = np.concatenate([hl_eef, np.full(len(hu_tab), -np.inf), -params.max_error - s_err])
+        h_l = np.concatenate([hl_pre, -params.max_error - s_err])
         h_u = np.concatenate([hu_eef, hu_tab, params.max_error - s_err])
 
         # Solve for the change from the previous plan: the free response of the model falls
