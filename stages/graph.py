@@ -165,8 +165,9 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
 
     # --- regrasp edges ------------------------------------------------------------------------
     sp_grasp = ps["support"][grasps["pose_id"]] == "SP"
-    for gi in np.flatnonzero(sp_grasp):  # one free-node edge per SP grasp
-        edges.append((gi, free_of_pose[grasps["pose_id"][gi]], "regrasp", w.regrasp / 2, "ok", -1, -1, -1, "both"))
+    sp_ids = np.flatnonzero(sp_grasp)  # one free-node edge per SP grasp
+    edges += [(gi, f, "regrasp", w.regrasp / 2, "ok", -1, -1, -1, "both")
+              for gi, f in zip(sp_ids.tolist(), free_of_pose[grasps["pose_id"][sp_ids]].tolist(), strict=True)]
     usp_ids = np.flatnonzero(~sp_grasp)
     for k, arm in ((0, "left"), (1, "right")):
         hold = grasps["margin_hold_left" if k == 0 else "margin_hold_right"]
@@ -186,12 +187,13 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
 
     # --- pivot edges --------------------------------------------------------------------------
     by_pose: dict[int, dict[tuple, int]] = {}
-    for gi in range(G):
-        by_pose.setdefault(int(grasps["pose_id"][gi]), {})[(int(grasps["contact_left"][gi]),
-                                                            int(grasps["contact_right"][gi]))] = gi
+    for gi, (pose, cl, cr) in enumerate(zip(grasps["pose_id"].tolist(), grasps["contact_left"].tolist(),
+                                            grasps["contact_right"].tolist(), strict=True)):
+        by_pose.setdefault(pose, {})[(cl, cr)] = gi
     cand = []  # (grasp_a, grasp_b, link)
-    for li in np.flatnonzero(links["primitive"] == "pivot"):
-        a, b = int(links["pose_a"][li]), int(links["pose_b"][li])
+    pivots = np.flatnonzero(links["primitive"] == "pivot")
+    for li, a, b in zip(pivots.tolist(), links["pose_a"][pivots].tolist(), links["pose_b"][pivots].tolist(),
+                        strict=True):
         ga, gb = by_pose.get(a, {}), by_pose.get(b, {})
         for key, gi in ga.items():
             if key in gb:
@@ -199,9 +201,9 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     cand = np.array(cand, dtype=np.int64).reshape(-1, 3)
     status = np.full(len(cand), "ok", dtype=object)
     v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
-    piv_a = [set(grasps["pivot_vertices"][gi].tolist()) for gi in range(G)]
-    for i, (ga, gb, _) in enumerate(cand):  # set lookups, one per candidate
-        if v[i] not in piv_a[ga] or v[i] not in piv_a[gb]:
+    piv_a = [set(x.tolist()) for x in grasps["pivot_vertices"]]
+    for i, (ga, gb, _), vi in zip(range(len(cand)), cand.tolist(), v.tolist(), strict=True):  # set lookups
+        if vi not in piv_a[ga] or vi not in piv_a[gb]:
             status[i] = "unstable"
     live = np.flatnonzero(status == "ok")
     if len(live):
@@ -238,8 +240,8 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
                                                       f_max=params.force_safety * scene.robot.max_eef_force),
                                      compute_margin=False)
             status[live2[~res.stable]] = "unstable"
-    for i, (ga, gb, _) in enumerate(cand):
-        edges.append((ga, gb, "pivot", w.pivot, str(status[i]), int(v[i]), -1, -1, "both"))
+    edges += [(ga, gb, "pivot", w.pivot, str(st), vi, -1, -1, "both")
+              for (ga, gb, _), st, vi in zip(cand.tolist(), status, v.tolist(), strict=True)]
     t2 = time.perf_counter()
 
     # --- tumble edges -------------------------------------------------------------------------
