@@ -734,7 +734,8 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
     # tenths of a second) is shared by every robot loaded with the same inputs in this process, so
     # stages run one after another in one process (``make bench``, the tests) derive it once.
     key = (hashlib.sha256(path.read_bytes()).hexdigest(), X_WB.tobytes(), tuple(eef_links), float(torso_angle),
-           arms["left"].q_rest.tobytes(), arms["right"].q_rest.tobytes(), ik_params)
+           arms["left"].q_rest.tobytes(), arms["right"].q_rest.tobytes(),
+           replace(ik_params, threads=1, min_chunk=0))  # how the work is split changes no result
     return Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
                  ik_params=ik_params, _cache=_shared_cache(key))
 
