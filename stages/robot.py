@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import threading
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -1364,6 +1365,10 @@ class _Rows:
         self.alive[rows] = False
 
 
+#: Serializes ``trimesh.Trimesh.contains`` between the checker's worker threads.
+_CONTAINS_LOCK = threading.Lock()
+
+
 def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radius: np.ndarray,
                margin: float, test: np.ndarray):
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
@@ -1430,7 +1435,8 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
     inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
     if inside.any() and not msh.convex:
-        inside[inside] = msh.mesh.contains(a[:, inside].T)
+        with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
+            inside[inside] = msh.mesh.contains(a[:, inside].T)
     hit |= inside
     order = np.lexsort((k[hit], c[hit]))
     return k[hit][order], c[hit][order]
