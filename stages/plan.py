@@ -306,12 +306,19 @@ def _mpc_helper(conn) -> None:
 
 
 def _spare_core() -> bool:
-    """Whether a core is idle besides the one this process uses: the 1-minute load average is at
-    least half a core below the number of cores. (A helper that shares a busy machine's cores with
-    someone else's work only adds its speculative checks to the walk's time.)"""
+    """Whether a core is idle besides the one this process uses: fewer tasks are runnable now than
+    there are cores (Linux's /proc/loadavg, this process included), elsewhere a 1-minute load average
+    at least a core and a half below the core count. (A helper that shares a busy machine's cores
+    with someone else's work only adds its speculative checks to the walk's time.)"""
+    cores = os.cpu_count() or 1
     try:
-        return (os.cpu_count() or 1) - os.getloadavg()[0] >= 0.5
-    except (AttributeError, OSError):  # no load average on this platform
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].split("/")[0]) < cores
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.getloadavg()[0] <= cores - 1.5
+    except (AttributeError, OSError):
         return False
 
 
