@@ -675,6 +675,9 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
     q_rest : (n,) rest posture for both arms, the IK's secondary objective (default ``SDA5F_REST`` for
         7-joint arms, else mid-range), clipped into the limits.
     ik_params : IK settings (default ``IKParams()``).
+
+    Robots loaded with the same inputs in one process share ``Robot._cache`` (self-collision pairs, IK
+    seed libraries), which depends on nothing else.
     """
     path = Path(urdf_path)
     links, joints = _parse_urdf(path)
@@ -1049,7 +1052,8 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
     object_mesh : trimesh.Trimesh of the object in its frame O, or None.
     margin : m; primitives closer than this count as colliding.
     threads : worker threads, each checking a slice of the rows (batches of at least 1024 rows); the
-        numpy kernels release the GIL, python-fcl does not. Every row's answer depends on that row alone.
+        numpy kernels release the GIL, python-fcl does not, and trimesh's inside test (not thread-safe)
+        runs under a lock. Every row's answer depends on that row alone.
 
     Returns
     -------
