@@ -69,6 +69,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import piqp
@@ -403,6 +404,18 @@ class RotationModel:
         """Table contacts carrying the reaction: 1 (vertex) or 2 (edge)."""
         return 1 if self.edge_O is None else 2
 
+    @cached_property
+    def step_constants(self) -> dict:
+        """Products of the fields that every MPC step uses, computed once per model."""
+        return {
+            # integrate_rotation, as nested lists: body torque to body angular acceleration, the
+            # inertia about A, and the gravity torque per unit of the body-frame vertical.
+            "M": (self.P_O @ self.K_O).tolist(), "I_A": self.I_A_O.tolist(),
+            "S_g": (se3.skew(self.r_com_O) * (-self.mass * self.g)).tolist(),
+            # _reaction_map
+            "mg": np.array([0.0, 0.0, -self.mass * self.g]), "KS6": self.K_O @ self.S6_O,
+        }
+
 
 def make_rotation_model(mass, I_com_O, p_com_O, p_contacts_O, n_contacts_O, p_support_O,
                         g: float = 9.81) -> RotationModel:
@@ -623,13 +636,17 @@ def _skew3(v) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+_I3 = np.eye(3)
+_I3.flags.writeable = False
+
+
 def _exp_so3(v: np.ndarray) -> np.ndarray:
     """Rodrigues' formula for one rotation vector ``v (3,)``."""
     th = float(np.sqrt(v @ v))
     S = _skew3(v)
     if th < 1e-8:
-        return np.eye(3) + S + 0.5 * (S @ S)
-    return np.eye(3) + (np.sin(th) / th) * S + ((1.0 - np.cos(th)) / th**2) * (S @ S)
+        return _I3 + S + 0.5 * (S @ S)
+    return _I3 + (np.sin(th) / th) * S + ((1.0 - np.cos(th)) / th**2) * (S @ S)
 
 
 def _log_so3(R: np.ndarray) -> np.ndarray:
@@ -709,9 +726,10 @@ def integrate_rotation(model: RotationModel, R: np.ndarray, nu: np.ndarray, f_O:
     vertex = model.edge_O is None
     nu = np.asarray(nu, dtype=float)
     w = tuple((nu @ R if vertex else model.P_O @ nu).tolist())  # omega_B
-    M = (model.P_O @ model.K_O).tolist()  # body torque to body angular acceleration
-    I_A = model.I_A_O.tolist()
-    S_g = (se3.skew(model.r_com_O) * (-model.mass * model.g)).tolist()  # r_com x (-m g v) = S_g v
+    const = model.step_constants
+    M = const["M"]  # body torque to body angular acceleration
+    I_A = const["I_A"]
+    S_g = const["S_g"]  # r_com x (-m g v) = S_g v
     te = (model.S6_O @ np.asarray(f_O, dtype=float).reshape(6)).tolist()  # EEF torque, fixed in O
 
     for _ in range(substeps):
@@ -796,7 +814,8 @@ def _reaction_map(model: RotationModel, R: np.ndarray, nu: np.ndarray):
     """
     nu = np.asarray(nu, dtype=float)
     vertex = model.edge_O is None
-    mg = np.array([0.0, 0.0, -model.mass * model.g])
+    const = model.step_constants
+    mg = const["mg"]
     omega = nu if vertex else R @ (model.P_O @ nu)
     omega_B = omega @ R
     r_com = R @ model.r_com_O
@@ -804,11 +823,11 @@ def _reaction_map(model: RotationModel, R: np.ndarray, nu: np.ndarray):
     tau_c = _cross(r_com, mg) - _cross(omega, Iw)
     # omega' = W_u u + W_c in W.
     if vertex:
-        W_u = R @ (model.K_O @ model.S6_O)
+        W_u = R @ const["KS6"]
         W_c = R @ (model.K_O @ (tau_c @ R))
     else:
         a = R @ model.P_O[:, 0]
-        W_u = np.outer(a, model.K_O @ model.S6_O)
+        W_u = np.outer(a, const["KS6"])
         W_c = a * (model.K_O[0] @ (tau_c @ R))
     Sc = _skew3(r_com)
     F_u = -model.mass * (Sc @ W_u) - np.concatenate([R, R], axis=1)
@@ -1069,6 +1088,39 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
     H_eef = np.concatenate([H_eef_W @ X0[:3, :3], model.n_eef_O[:, None, :]], axis=1)  # (2, 7, 3), O
     hl_eef1 = np.r_[np.full(6, -np.inf), params.f_min]
     hu_eef1 = np.r_[np.zeros(6), params.f_max]
+    j0 = lay.knots[1:]  # knots after the first: the table rows along the prediction
+    base_A, base_B, base_D = ref_base.A, ref_base.B, ref_base.D
+    TA, TD, TMa = ref_tensors
+    # What step k needs at its later knots' stages k + j0, gathered for every k at once.
+    kj = np.arange(T)[:, None] + j0
+    Ma_kj, TMa_kj, Na_kj, ca_kj = ref_base.Ma[kj], TMa[kj], ref_base.Na[kj], ref_base.ca[kj]
+    G_kj = [G[kj] for G in ref_G]
+    # The contact schedule over each step's horizon fixes the input maps U and what follows from them
+    # alone; the products of U with the reference's stage matrices are taken for all steps at once.
+    windows = [mask_pad[k:k + N] for k in range(T)]
+    keys = [m.tobytes() for m in windows]
+    n_tab = lay.nk * model.n_support * 6  # table rows
+    by_mask: dict = {}
+    BBU = np.empty((T, N, nx, lay.nz))  # B_j U_j of step k's stages
+    NaU = np.empty((T, len(j0), nr, lay.nz))  # Na U at its later knots
+    HuU = np.empty((T, len(j0), model.n_support, 6, lay.nz))  # the table rows' u part there
+    for key in dict.fromkeys(keys):  # each distinct schedule, once
+        ks = np.array([k for k in range(T) if keys[k] == key])
+        m_st = windows[ks[0]]
+        U = lay.input_maps(m_st)
+        U2 = U.reshape(N * 6, lay.nz)
+        # EEF rows at every knot whose value a touching stage uses (linear in O, so the
+        # interpolated forces between two feasible knots are feasible).
+        bb, ii = np.nonzero(lay.knot_active(m_st))
+        G_eef = np.zeros((len(bb), 7, lay.nz))
+        cols = (6 * bb + 3 * ii)[:, None] + np.arange(3)
+        G_eef[np.arange(len(bb))[:, None, None], np.arange(7)[None, :, None], cols[:, None, :]] = H_eef[ii]
+        by_mask[key] = (U, params.beta * (U2.T @ U2), G_eef.reshape(-1, lay.nz),
+                        np.concatenate([np.tile(hl_eef1, len(bb)), np.full(n_tab, -np.inf)]),
+                        np.tile(hu_eef1, len(bb)), U[0])
+        BBU[ks] = base_B[ks[:, None] + np.arange(N)] @ U
+        NaU[ks] = Na_kj[ks] @ U[j0]
+        HuU[ks] = G_kj[1][ks] @ U[j0][:, None]
 
     X_WO = np.full((T, 4, 4), np.nan)
     omega_W = np.full((T, 3), np.nan)
@@ -1083,64 +1135,63 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
     nu = np.zeros(nr)
     f_prev = np.zeros((N, 2, 3))  # previous solution's forces, shifted by one stage (O)
     p_A_W = p_support_W[0]
+    Ss = np.empty((N + 1, nx, lay.nz + 1))  # the condensed prediction, see below
+    Ss[0] = 0.0
+    BU = np.empty((N, nx, lay.nz + 1))
+    Ss_j, BU_j = list(Ss), list(BU)  # views of each stage
+    diag = np.arange(lay.nz) * (lay.nz + 1)  # flat indices of the QP's diagonal
     for k in range(T):
-        X_WO[k] = se3.make_transform(R, p_A_W - R @ model.p_A_O)
+        X_WO[k, :3, :3] = R
+        X_WO[k, :3, 3] = p_A_W - R @ model.p_A_O
+        X_WO[k, 3] = (0.0, 0.0, 0.0, 1.0)
         delta0 = _log_so3(R @ R_ref[k].T)
-        err[k] = np.linalg.norm(delta0)
+        err[k] = np.sqrt(delta0.dot(delta0))  # np.linalg.norm's own formula
         omega0 = R @ model.P_O @ nu if lay.edge else nu  # nu is omega_W itself about a vertex
         omega_W[k] = omega0
-        x0 = np.concatenate([ref_terms["Pt"][k] @ delta0, nu])
         # Stages linearised along the reference (the state enters through x0), with the forces
-        # of the previous plan for the lever-arm terms.
+        # of the previous plan for the lever-arm terms (:func:`_with_force_terms`; the
+        # accelerations are needed at the knots only).
         sl = slice(k, k + N)
-        lin = _with_force_terms(
-            LinearStages(*(getattr(ref_base, name)[sl] for name in ("A", "B", "D", "Ma", "Na", "ca"))),
-            tuple(T_[sl] for T_ in ref_tensors), f_prev)
-        m_st = mask_pad[k:k + N]
+        f6 = f_prev.reshape(-1, 6)
+        lin_A = base_A[sl] + np.einsum("nl,nlij->nij", f6, TA[sl])
+        lin_D = base_D[sl] + np.einsum("nl,nli->ni", f6, TD[sl])
+        Ma_j0 = Ma_kj[k] + np.einsum("nl,nlij->nij", f6[j0], TMa_kj[k])
+        U, P_u, G_eef, hl_pre, hu_eef, U_0 = by_mask[keys[k]]
 
         # Condense: [S_j | s_j] with x_j = S_j z + s_j, u_j = U_j z.
-        U = lay.input_maps(m_st)
-        BU = np.concatenate([lin.B @ U, lin.D[:, :, None]], axis=2)  # (N, nx, nz + 1)
-        Ss = np.empty((N + 1, nx, lay.nz + 1))
-        Ss[0] = 0.0
-        Ss[0, :, -1] = x0
+        BU[:, :, :-1] = BBU[k]
+        BU[:, :, -1] = lin_D
+        Ss[0, :nr, -1] = ref_terms["Pt"][k] @ delta0  # x0
+        Ss[0, nr:, -1] = nu
         for j in range(N):
-            Ss[j + 1] = lin.A[j] @ Ss[j] + BU[j]
+            S_next = Ss_j[j + 1]
+            np.matmul(lin_A[j], Ss_j[j], out=S_next)
+            S_next += BU_j[j]
         S_all, s_all = Ss[:, :, :-1], Ss[:, :, -1]
         x_ref = np.concatenate([np.zeros((N, nr)), nu_ref[k + 1:k + N + 1]], axis=1)
         Sx = S_all[1:].reshape(N * nx, lay.nz)
         WSx = W_cost[:, None] * Sx
-        U2 = U.reshape(N * 6, lay.nz)
-        P_qp = Sx.T @ WSx + params.beta * (U2.T @ U2)
+        P_qp = Sx.T @ WSx + P_u
         c_qp = WSx.T @ (s_all[1:] - x_ref).reshape(N * nx)
         # A token weight keeps the value of a knot that no touching stage uses at zero (and the
         # along-edge reaction parts bounded).
-        P_qp[np.diag_indices(lay.nz)] += 1e-6 * params.beta + 1e-9
-
-        # EEF rows at every knot whose value a touching stage uses (linear in O, so the
-        # interpolated forces between two feasible knots are feasible).
-        bb, ii = np.nonzero(lay.knot_active(m_st))
-        G_eef = np.zeros((len(bb), 7, lay.nz))
-        cols = (6 * bb + 3 * ii)[:, None] + np.arange(3)
-        G_eef[np.arange(len(bb))[:, None, None], np.arange(7)[None, :, None], cols[:, None, :]] = H_eef[ii]
+        P_qp.flat[diag] += 1e-6 * params.beta + 1e-9
 
         # Table rows at each knot's stage. Knot 0 (the force applied now): exact at the state.
         F_u, F_c, e_s = _reaction_map(model, R, nu)  # (nv, 3, 6), (nv, 3), (nv, 3)
-        G_tab = [np.einsum("vri,vin->vrn", H_table, F_u @ U[0])[None]]
+        G_tab = [np.einsum("vri,vin->vrn", H_table, F_u @ U_0)[None]]
         hu_tab = [-np.einsum("vri,vi->vr", H_table, F_c)[None]]
         # Later knots: along the reference, through the predicted nu'_j = Ma x_j + Na u_j + ca.
-        j0 = lay.knots[1:]
         if len(j0):
-            idx = k + j0
-            H_nu, H_u, h_0, _ = (G[idx] for G in ref_G)
-            nud_z = lin.Ma[j0] @ S_all[j0] + lin.Na[j0] @ U[j0]  # (nj, nr, nz)
-            nud_c = np.einsum("bij,bj->bi", lin.Ma[j0], s_all[j0]) + lin.ca[j0]
-            G_tab.append(H_nu @ nud_z[:, None] + H_u @ U[j0][:, None])
+            H_nu, h_0 = G_kj[0][k], G_kj[2][k]
+            nud_z = Ma_j0 @ S_all[j0] + NaU[k]  # (nj, nr, nz)
+            nud_c = np.einsum("bij,bj->bi", Ma_j0, s_all[j0]) + ca_kj[k]
+            G_tab.append(H_nu @ nud_z[:, None] + HuU[k])
             hu_tab.append(-(np.einsum("bvrj,bj->bvr", H_nu, nud_c) + h_0))
         G_tab = np.concatenate(G_tab)  # (nk, nv, 6, nz)
         hu_tab = np.concatenate(hu_tab).reshape(-1)
         if lay.edge:  # the along-edge split, one unknown per knot
-            He = np.concatenate([np.einsum("vri,vi->vr", H_table, e_s)[None], ref_G[3][k + j0]])
+            He = np.concatenate([np.einsum("vri,vi->vr", H_table, e_s)[None], G_kj[3][k]])
             G_tab[np.arange(lay.nk), :, :, 6 * lay.nk + np.arange(lay.nk)] += He
         G_tab = G_tab.reshape(-1, lay.nz)
 
@@ -1148,10 +1199,9 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         G_err = S_all[lay.err_idx, :nr].reshape(-1, lay.nz)
         s_err = s_all[lay.err_idx, :nr].reshape(-1)
 
-        G = np.asfortranarray(np.concatenate([G_eef.reshape(-1, lay.nz), G_tab, G_err]))
-        h_l = np.concatenate([np.tile(hl_eef1, len(bb)), np.full(len(hu_tab), -np.inf),
-                              -params.max_error - s_err])
-        h_u = np.concatenate([np.tile(hu_eef1, len(bb)), hu_tab, params.max_error - s_err])
+        G = np.asfortranarray(np.concatenate([G_eef, G_tab, G_err]))
+        h_l = np.concatenate([hl_pre, -params.max_error - s_err])
+        h_u = np.concatenate([hu_eef, hu_tab, params.max_error - s_err])
 
         # Solve for the change from the previous plan: the free response of the model falls
         # far from the reference (gravity), so centring on a nominal keeps the numbers small.

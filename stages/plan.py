@@ -22,7 +22,11 @@ robot's actual joint configuration along (it starts at the home posture, all joi
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
 are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept
 by edge and exact robot state, so the next path re-walks the prefix it shares with the last one
-without re-planning it (the result is the same, bit for bit). The pivot IK first tries all samples in
+without re-planning it (the result is the same, bit for bit). A pivot's MPC check depends on its edge
+alone, not on the robot's state (nor does the state after the pivot depend on it), so its outcome is
+kept by edge; with ``Params.mpc_helper`` a forked process runs the MPC checks of the pivots the walk
+has passed while the walk goes on, and the outcomes are then taken in path order, so the first
+failing edge is the same as when everything runs in turn. The pivot IK first tries all samples in
 one vectorized solve (``Robot.ik_trajectory(batch=True)``) and falls back to step by step. Ablations (the paper's
 comparisons): ``no_regrasp`` keeps only the first grasp and the final release (the graph MPC gait of
 [3]); when the goal is then out of reach the plan goes to the reachable pose nearest the goal and
@@ -31,6 +35,8 @@ reports the remaining error, as Table 2 does; ``no_tumble`` and ``no_usp`` drop 
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -62,6 +68,10 @@ class Params:
     check_mpc: bool = True
     mpc_max_error: float = 5e-3
     mpc_max_force: float = 0.9
+    #: Run the pivots' MPC checks in a forked helper process while the walk goes on, when a core is
+    #: idle (the MPC is most of a plan's time: on exp1_reach 2.5 s instead of 3.5 s on the idle
+    #: 2-core VM). The plan is the same either way. Not in the artifact's parameters.
+    mpc_helper: bool = True
     #: Durations (s) of tilt, rotate, lower of a pivot and of a tumble.
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble_duration: float = 4.0
@@ -129,23 +139,30 @@ def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, 
     G = nx.DiGraph()
     G.add_nodes_from(nodes["node_id"].tolist())
     usp = nodes["support"] == "USP"
-    for i in np.flatnonzero(edges["status"] == "ok"):  # a few thousand edges
-        a, b, prim = int(edges["node_a"][i]), int(edges["node_b"][i]), str(edges["primitive"][i])
-        if params.no_tumble and prim == "tumble":
-            continue
-        if params.no_usp and (usp[a] or usp[b]):
-            continue
-        data = {"weight": float(edges["weight"][i]), "edge_id": int(i), "primitive": prim}
+    ok = np.flatnonzero(edges["status"] == "ok")
+    a_all, b_all = edges["node_a"][ok], edges["node_b"][ok]
+    keep = np.ones(len(ok), bool)
+    if params.no_tumble:
+        keep &= edges["primitive"][ok] != "tumble"
+    if params.no_usp:
+        keep &= ~(usp[a_all] | usp[b_all])
+    arcs = []  # (a, b, data) in edge order, both ways for undirected edges
+    for i, a, b, prim, weight, directed in zip(ok[keep].tolist(), a_all[keep].tolist(), b_all[keep].tolist(),
+                                               edges["primitive"][ok[keep]].tolist(),
+                                               edges["weight"][ok[keep]].tolist(),
+                                               edges["directed"][ok[keep]].tolist(), strict=True):
+        data = {"weight": weight, "edge_id": i, "primitive": prim}
         if params.no_regrasp and prim == "regrasp":
             # Only the first grasp (out of the start's free node) and the final release (into the goal's).
             if a == start or b == goal:
-                G.add_edge(a, b, **data)
+                arcs.append((a, b, data))
             if b == start or a == goal:
-                G.add_edge(b, a, **data)
+                arcs.append((b, a, data))
             continue
-        G.add_edge(a, b, **data)
-        if not edges["directed"][i]:
-            G.add_edge(b, a, **data)
+        arcs.append((a, b, data))
+        if not directed:
+            arcs.append((b, a, data))
+    G.add_edges_from(arcs)
     return G, start, goal
 
 
@@ -156,7 +173,10 @@ def _transit(ctx: _Context, params: Params, state: _State, arm: str, q_goal, n_g
 
 
 def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict):
-    """Check one edge of the path from ``state``; returns ``(ok, reason, step dict, new state)``."""
+    """Check one edge of the path from ``state``; returns ``(ok, reason, step dict, new state)``.
+
+    For a pivot that is the motion check (IK, collisions); its MPC check is :class:`_MPCChecks`'.
+    """
     nodes = ctx.nodes
     prim = data["primitive"]
     pu, pv = int(nodes["pose_id"][u]), int(nodes["pose_id"][v])
@@ -185,11 +205,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                     contacts={a: ctx.contact(gv, a) for a in ("left", "right")})
         return True, "ok", step, new
     if prim == "pivot":
-        vtx = int(ctx.edges["vertex"][data["edge_id"]])
-        Xa, Xb = ctx.X_WO[pu], ctx.X_WO[pv]
-        p0 = se3.transform_points(Xa, ctx.model.vertices[vtx])
-        t, Xr, phase = mpc.pivot_reference(Xa, Xb, p0, ctx.scene.planner.tilt, params.mpc.dt,
-                                           params.pivot_durations, p_com_O=ctx.model.com)
+        vtx, Xa, Xb, p0, t, Xr = _pivot_motion(ctx, params, u, v, data["edge_id"])
         cl, cr = ctx.contact(gu, "left"), ctx.contact(gu, "right")
         p_c, n_c = ctx.p_O[[cl, cr]], ctx.n_O[[cl, cr]]
         q0 = np.stack([state.q["left"], state.q["right"]])[None]
@@ -199,18 +215,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                       ctx.scene.robot.ball_radius, GraphParams(), batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
-        if params.check_mpc:
-            summ = ctx.tables["summary"]
-            res = mpc.run_pivot_mpc(ctx.scene.object.mass, np.asarray(summ["inertia"]), ctx.model.com, p_c, -n_c,
-                                    p0, t, Xr, _mpc_params(ctx, params))
-            if res.status != "ok":
-                return False, "mpc_infeasible", step, state
-            f_peak = float(np.max(np.linalg.norm(res.f_eef_W, axis=2)))
-            if np.max(res.tracking_error) > params.mpc_max_error or f_peak > params.mpc_max_force * \
-                    ctx.scene.robot.max_eef_force:
-                return False, "mpc_marginal", step, state  # feasible only at its limits: physics slips
-            step["mpc_max_error"] = float(np.max(res.tracking_error))
-            step["mpc_peak_force"] = f_peak
+        # The MPC check (``_MPCChecks``) depends on the arc alone; the walk asks for it.
         new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
                      {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb)
         step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
@@ -301,6 +306,187 @@ def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_ca
     return out if isinstance(out, str) else ""
 
 
+def _pivot_motion(ctx: _Context, params: Params, u: int, v: int, edge_id: int):
+    """The pivot of arc ``u -> v``: vertex, start and goal poses, table vertex ``p0 (3,)`` (W) and the
+    tilt -> rotate -> lower reference ``t (T,)``, ``X_ref (T, 4, 4)`` sampled at the MPC's step."""
+    vtx = int(ctx.edges["vertex"][edge_id])
+    Xa, Xb = ctx.X_WO[int(ctx.nodes["pose_id"][u])], ctx.X_WO[int(ctx.nodes["pose_id"][v])]
+    p0 = se3.transform_points(Xa, ctx.model.vertices[vtx])
+    t, Xr, _ = mpc.pivot_reference(Xa, Xb, p0, ctx.scene.planner.tilt, params.mpc.dt, params.pivot_durations,
+                                   p_com_O=ctx.model.com)
+    return vtx, Xa, Xb, p0, t, Xr
+
+
+def _pivot_mpc(mass, inertia, p_com_O, p_c, n_in, p0, t, X_ref, mpc_params, max_error, max_force):
+    """The MPC of one pivot (``stages.mpc.run_pivot_mpc``) judged as the walk judges it: returns
+    ``(reason, largest tracking error (rad), peak ball force (N))``, the reason ``ok``,
+    ``mpc_infeasible`` (the last two None) or ``mpc_marginal``."""
+    res = mpc.run_pivot_mpc(mass, inertia, p_com_O, p_c, n_in, p0, t, X_ref, mpc_params)
+    if res.status != "ok":
+        return "mpc_infeasible", None, None
+    err = float(np.max(res.tracking_error))
+    f_peak = float(np.max(np.linalg.norm(res.f_eef_W, axis=2)))
+    if err > max_error or f_peak > max_force:
+        return "mpc_marginal", err, f_peak  # feasible only at its limits: physics slips
+    return "ok", err, f_peak
+
+
+def _mpc_helper(conn) -> None:
+    """The forked helper of :class:`_MPCChecks`: ``(arc, args)`` in, ``(arc, outcome or None)`` out.
+
+    It leaves with ``os._exit``: no exit handlers, no flushing of stdio buffers that another thread
+    of the parent (a progress bar) may have held at the fork.
+    """
+    try:
+        while True:
+            job = conn.recv()
+            if job is None:
+                break
+            arc, args = job
+            try:
+                out = _pivot_mpc(*args)
+            except Exception:  # noqa: BLE001 -- the walk runs it again itself and reports the error
+                out = None
+            conn.send((arc, out))
+    except (EOFError, OSError, KeyboardInterrupt):
+        pass
+    finally:
+        os._exit(0)
+
+
+def _spare_core() -> bool:
+    """Whether a core is idle besides the one this process uses: fewer tasks are runnable now than
+    there are cores (Linux's /proc/loadavg, this process included), elsewhere a 1-minute load average
+    at least a core and a half below the core count. (A helper that shares a busy machine's cores
+    with someone else's work only adds its speculative checks to the walk's time.)"""
+    cores = os.cpu_count() or 1
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].split("/")[0]) < cores
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.getloadavg()[0] <= cores - 1.5
+    except (AttributeError, OSError):
+        return False
+
+
+class _MPCChecks:
+    """The MPC outcome of each pivot arc, computed once: it depends on the arc alone (poses, vertex,
+    contacts), not on the robot's state, and the state after a pivot does not depend on it.
+
+    Without a helper a pivot's MPC runs as soon as the walk requests it, right after its motion
+    check. With ``Params.mpc_helper`` and an idle core a forked process runs the requested ones in
+    path order while the walk goes on with the motion checks (which neither need nor change an MPC
+    outcome), and stops walking once an outcome fails; the walk then takes the outcomes in path order
+    and runs itself those the helper has not started (and, while waiting, later ones), so the two
+    leapfrog. Where an outcome is computed changes nothing.
+    """
+
+    def __init__(self, ctx: _Context, params: Params):
+        self.ctx, self.params = ctx, params
+        self.done: dict = {}  # (u, v) -> outcome
+        self.queue: list = []  # (u, v, edge_id) requested on the path being walked, in path order
+        self.busy = None  # the arc the helper runs
+        self.conn = self.proc = None
+        if params.check_mpc and params.mpc_helper and _spare_core() and \
+                "fork" in multiprocessing.get_all_start_methods():
+            mp = multiprocessing.get_context("fork")
+            self.conn, child = mp.Pipe()
+            self.proc = mp.Process(target=_mpc_helper, args=(child,), daemon=True)
+            self.proc.start()
+            child.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.proc is None:
+            return
+        if self.busy is None:
+            try:
+                self.conn.send(None)
+            except OSError:
+                pass
+        else:  # it runs a speculative check nobody waits for any more
+            self.proc.kill()
+        self.proc.join(timeout=5.0)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
+        self.conn.close()
+
+    def walk(self) -> None:
+        """A new path is walked: what the last one requested is no longer wanted."""
+        self.queue = []
+
+    def request(self, u: int, v: int, edge_id: int) -> None:
+        """The walk reached pivot arc ``u -> v`` (its motion check passed)."""
+        self.queue.append((u, v, edge_id))
+        if self.conn is None and (u, v) not in self.done:
+            self.done[u, v] = _pivot_mpc(*self._args(u, v, edge_id))
+        self.feed()
+
+    def known_failure(self) -> bool:
+        """Whether a pivot requested on this path already has a failing outcome (the rest is moot)."""
+        return any(self.done.get(a[:2], ("ok",))[0] != "ok" for a in self.queue)
+
+    def outcome(self, u: int, v: int, edge_id: int):
+        """``(reason, max tracking error, peak force)`` of arc ``u -> v`` (see :func:`_pivot_mpc`)."""
+        arc = (u, v)
+        while arc not in self.done:
+            if self.busy != arc:  # the helper has not started it: run it here
+                self.feed(mine=arc)
+                self.done[arc] = _pivot_mpc(*self._args(u, v, edge_id))
+                continue
+            # The helper runs it: run a later requested one meanwhile, or wait.
+            later = [a for a in self.queue if a[:2] not in self.done and a[:2] != arc]
+            if later:
+                self.done[later[0][:2]] = _pivot_mpc(*self._args(*later[0]))
+            self._collect(block=not later)
+        self.feed()
+        return self.done[arc]
+
+    def feed(self, mine=None) -> None:
+        """Hand the idle helper the first requested arc without an outcome (not ``mine``, which the
+        walk is about to run)."""
+        if self.conn is None:
+            return
+        self._collect(block=False)
+        if self.busy is not None:
+            return
+        for u, v, edge_id in self.queue:
+            if (u, v) not in self.done and (u, v) != mine:
+                try:
+                    self.conn.send(((u, v), self._args(u, v, edge_id)))
+                    self.busy = (u, v)
+                except OSError:
+                    self.conn = None
+                return
+
+    def _args(self, u: int, v: int, edge_id: int) -> tuple:
+        ctx, params = self.ctx, self.params
+        _, _, _, p0, t, Xr = _pivot_motion(ctx, params, u, v, edge_id)
+        gu = int(ctx.nodes["grasp_id"][u])
+        c = [ctx.contact(gu, "left"), ctx.contact(gu, "right")]
+        return (ctx.scene.object.mass, np.asarray(ctx.tables["summary"]["inertia"]), ctx.model.com, ctx.p_O[c],
+                -ctx.n_O[c], p0, t, Xr, _mpc_params(ctx, params), params.mpc_max_error,
+                params.mpc_max_force * ctx.scene.robot.max_eef_force)
+
+    def _collect(self, block: bool) -> None:
+        """Take the helper's outcome if it is there (or wait for it)."""
+        if self.busy is None or not (block or self.conn.poll()):
+            return
+        try:
+            arc, out = self.conn.recv()
+        except (EOFError, OSError):  # the helper is gone: the walk runs everything itself
+            self.conn = None
+        else:
+            if out is not None:
+                self.done[arc] = out
+        self.busy = None
+
+
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
     """The pusher's contact and joint path for a tumble (see ``stages.graph._find_pusher``)."""
     found, c, q = pusher_motion(ctx.robot, ctx.collide, ctx.model, Xa, Xb, e0, e1, ctx.p_O, ctx.n_O,
@@ -320,6 +506,11 @@ def _yaw_between(Xa, Xb) -> float:
 
 def search(ctx: _Context, params: Params) -> dict:
     """Search, check lazily, backtrack; returns the plan dict (status, steps, log, counts, cost)."""
+    with _MPCChecks(ctx, params) as mpc_checks:
+        return _search(ctx, params, mpc_checks)
+
+
+def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
     G, start, goal = build_search_graph(ctx, params)
     log: list[dict] = []
     partial = None
@@ -346,16 +537,31 @@ def search(ctx: _Context, params: Params) -> dict:
                        ctx.X_WO[int(ctx.nodes["pose_id"][start])])
         steps = []
         failed = None
+        pivots = []  # (index in steps, u, v, data) of the pivots walked, whose MPC outcome is asked for
+        mpc_checks.walk()
         for u, v in zip(path[:-1], path[1:], strict=True):  # the path's few dozen edges
             data = G.edges[u, v]
             key = (u, v, state.key())
             if key not in checked:
+                mpc_checks.feed()
                 checked[key] = _check_step(ctx, params, state, u, v, data)
             ok, why, step, state = checked[key]
             if not ok:
                 failed = (u, v, data, why)
                 break
+            if data["primitive"] == "pivot" and params.check_mpc:
+                pivots.append((len(steps), u, v, data))
+                mpc_checks.request(u, v, data["edge_id"])
             steps.append(step)
+            if mpc_checks.known_failure():
+                break
+        # The pivots' MPC checks, in path order: a failing one comes before any later failure.
+        for i, u, v, data in pivots:
+            why, err, f_peak = mpc_checks.outcome(u, v, data["edge_id"])
+            if why != "ok":
+                failed, steps = (u, v, data, why), steps[:i]
+                break
+            steps[i].update(mpc_max_error=err, mpc_peak_force=f_peak)
         if failed is None:
             cost = float(sum(G.edges[u, v]["weight"] for u, v in zip(path[:-1], path[1:], strict=True)))
             counts = {p: sum(s["primitive"] == p for s in steps) for p in ("pivot", "tumble")}
@@ -419,7 +625,8 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
     ctx = _Context(scene, analysis_dir, sample_dir, graph_dir)
     plan = search(ctx, params)
     elapsed = time.perf_counter() - t0
-    meta_params = {**asdict(params), "weights": asdict(scene.planner.weights)}
+    meta_params = {**{k: v for k, v in asdict(params).items() if k != "mpc_helper"},
+                   "weights": asdict(scene.planner.weights)}
     meta = artifacts.make_meta("plan", meta_params, ctx.inputs, producer)
     for s in plan["steps"]:
         for key in ("pose_from", "pose_to"):

@@ -18,11 +18,13 @@ Frames use Drake's monogram notation (see STYLE.md): ``X_WB`` is the robot base 
 
 from __future__ import annotations
 
+import hashlib
 import math
+import threading
 import xml.etree.ElementTree as ET
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -313,7 +315,10 @@ class IKParams:
 
 @dataclass(frozen=True, eq=False)
 class Robot:
-    """A dual-arm robot with its trunk held still; build it with ``load_robot``."""
+    """A dual-arm robot with its trunk held still; build it with ``load_robot``.
+
+    ``_cache`` holds what is derived from the robot alone (``_self_pairs``, ``Robot._library``); robots
+    loaded with the same inputs share it."""
 
     urdf_path: Path
     X_WB: np.ndarray  # (4, 4) base link in the world
@@ -670,6 +675,9 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
     q_rest : (n,) rest posture for both arms, the IK's secondary objective (default ``SDA5F_REST`` for
         7-joint arms, else mid-range), clipped into the limits.
     ik_params : IK settings (default ``IKParams()``).
+
+    Robots loaded with the same inputs in one process share ``Robot._cache`` (self-collision pairs, IK
+    seed libraries), which depends on nothing else.
     """
     path = Path(urdf_path)
     links, joints = _parse_urdf(path)
@@ -725,9 +733,21 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
         raise InputError(f"{path}: the arms have {arms['left'].dof} and {arms['right'].dof} joints")
 
     static = _make_static(path, links, X_W, arm_links)
-    robot = Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
-                  ik_params=ik_params or IKParams())
-    return robot
+    ik_params = ik_params or IKParams()
+    # What the robot derives from these inputs alone (self-collision pairs, IK seed libraries: a few
+    # tenths of a second) is shared by every robot loaded with the same inputs in this process, so
+    # stages run one after another in one process (``make bench``, the tests) derive it once.
+    key = (hashlib.sha256(path.read_bytes()).hexdigest(), X_WB.tobytes(), tuple(eef_links), float(torso_angle),
+           arms["left"].q_rest.tobytes(), arms["right"].q_rest.tobytes(),
+           replace(ik_params, threads=1, min_chunk=0))  # how the work is split changes no result
+    return Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
+                 ik_params=ik_params, _cache=_shared_cache(key))
+
+
+@lru_cache(maxsize=8)
+def _shared_cache(key: tuple) -> dict:
+    """One cache dict per distinct robot (``load_robot``); a handful are kept."""
+    return {}
 
 
 def _make_arm(path, name, root, chain, links, joints, X_W, q_rest) -> Arm:
@@ -1009,6 +1029,11 @@ def _to_frame(X_inv: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.tensordot(X_inv[:3, :3], P, axes=1) + t
 
 
+def _rows(X: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``X[..., rows]`` for sorted distinct ``rows``; ``X`` itself, not a copy, when they are all its rows."""
+    return X if len(rows) == X.shape[-1] else X[..., rows]
+
+
 def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), object_mesh=None,
                       margin: float = 0.0, table_depth: float = 1.0, threads: int = 1) -> CollisionFn:
     """Build a batched collision checker for both arms of ``robot`` in a scene (paper §4.2).
@@ -1027,7 +1052,8 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
     object_mesh : trimesh.Trimesh of the object in its frame O, or None.
     margin : m; primitives closer than this count as colliding.
     threads : worker threads, each checking a slice of the rows (batches of at least 1024 rows); the
-        numpy kernels release the GIL, python-fcl does not. Every row's answer depends on that row alone.
+        numpy kernels release the GIL, python-fcl does not, and trimesh's inside test (not thread-safe)
+        runs under a lock. Every row's answer depends on that row alone.
 
     Returns
     -------
@@ -1133,7 +1159,7 @@ class CollisionFn:
         for name, Xi, h in self.boxes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, mids[s][:, :, rows]), h[:, None, None])
+                c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, _rows(mids[s], rows)), h[:, None, None])
                                   <= (rho[s] + mg) ** 2)
                 r = rows[k]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
@@ -1143,7 +1169,7 @@ class CollisionFn:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 erho = np.linalg.norm(eb - ea) / 2 + er
-                dm = mids[s][:, :, rows] - ((ea + eb) / 2)[:, None, None]
+                dm = _rows(mids[s], rows) - ((ea + eb) / 2)[:, None, None]
                 c, k = np.nonzero(_dot(dm, dm) <= (rho[s] + erho + mg) ** 2)
                 r = rows[k]
                 ones = np.ones(len(c))
@@ -1153,7 +1179,7 @@ class CollisionFn:
         for name, Xi, rad, hh in self.cyls:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                Pm = _to_frame(Xi, mids[s][:, :, rows])
+                Pm = _to_frame(Xi, _rows(mids[s], rows))
                 dm = _point_cyl_dist(Pm.reshape(3, -1), rad, hh).reshape(Pm.shape[1:])
                 c, k = np.nonzero(dm <= rho[s] + mg)
                 r = rows[k]
@@ -1162,7 +1188,7 @@ class CollisionFn:
         for name, Xi, msh in self.meshes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
-                k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), A[:, :, rows], B[:, :, rows],
+                k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), _rows(A, rows), _rows(B, rows),
                                   a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
                 st.fail(rows[k], "env_collision", names[s][c], name, s)
 
@@ -1175,7 +1201,7 @@ class CollisionFn:
                 if not len(cc):
                     continue
                 rows, Xi, h = st.live(), self.box_inv[kb], trunk.box_half[kb]
-                p, k = np.nonzero(_point_box_dist2(_to_frame(Xi, M[:, cc[:, None], rows]), h[:, None, None])
+                p, k = np.nonzero(_point_box_dist2(_to_frame(Xi, _rows(M[:, cc], rows)), h[:, None, None])
                                   <= (rh[cc] + mg) ** 2)
                 r, c = rows[k], cc[p]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
@@ -1193,13 +1219,13 @@ class CollisionFn:
 
         # Self: left against right, only on rows whose arms' bounding boxes overlap.
         rows = st.live()
-        box = [(np.min(np.minimum(A, B)[:, :, rows] - a.cap_r[:, None], axis=1),
-                np.max(np.maximum(A, B)[:, :, rows] + a.cap_r[:, None], axis=1))
+        box = [(np.min(_rows(np.minimum(A, B), rows) - a.cap_r[:, None], axis=1),
+                np.max(_rows(np.maximum(A, B), rows) + a.cap_r[:, None], axis=1))
                for a, (A, B) in zip(arms, ends, strict=True)]
         rows = rows[np.all((box[0][0] <= box[1][1] + mg) & (box[1][0] <= box[0][1] + mg), axis=0)]
         if len(rows) and len(self.lr_pairs):
             i, j = self.lr_pairs.T
-            dm = mids[0][:, i[:, None], rows] - mids[1][:, j[:, None], rows]
+            dm = _rows(mids[0], rows)[:, i] - _rows(mids[1], rows)[:, j]
             p, k = np.nonzero(_dot(dm, dm) <= (rho[0][i] + rho[1][j] + mg) ** 2)
             r = rows[k]
             (Al, Bl), (Ar, Br) = ends
@@ -1215,7 +1241,8 @@ class CollisionFn:
             rows = st.live()
             (A, B), M, rh = ends[s], mids[s], rho[s]
             i, j = self.intra_pairs[s].T
-            dm = M[:, i[:, None], rows] - M[:, j[:, None], rows]
+            Mr = _rows(M, rows)
+            dm = Mr[:, i] - Mr[:, j]
             p, k = np.nonzero(_dot(dm, dm) <= (rh[i] + rh[j] + mg) ** 2)
             r = rows[k]
             hit = _seg_seg_dist2(A[:, i[p], r], B[:, i[p], r], A[:, j[p], r], B[:, j[p], r]) \
@@ -1232,7 +1259,7 @@ class CollisionFn:
                 A, B = ends[s]
                 test = np.ones((len(a.cap_names), len(rows)), bool)
                 test[a.cap_link == a.eef_index] = ~touch[rows, s]
-                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), A[:, :, rows], B[:, :, rows],
+                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), _rows(A, rows), _rows(B, rows),
                                   a.cap_r, mg, test)
                 st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
         return st.alive, st.reason.astype(str), st.blame
@@ -1342,6 +1369,10 @@ class _Rows:
         self.alive[rows] = False
 
 
+#: Serializes ``trimesh.Trimesh.contains`` between the checker's worker threads.
+_CONTAINS_LOCK = threading.Lock()
+
+
 def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radius: np.ndarray,
                margin: float, test: np.ndarray):
     """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
@@ -1360,11 +1391,11 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
 
     # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
     # mesh's bounding box grown by the capsule radius.
-    R, t = X_OW[:, :3, :3], X_OW[:, :3, 3]
+    R, t = np.ascontiguousarray(np.moveaxis(X_OW[:, :3, :3], 0, -1)), np.ascontiguousarray(X_OW[:, :3, 3].T)
     rr = radius + margin
 
     def to_mesh(P):
-        return np.stack([R[:, i, 0] * P[0] + R[:, i, 1] * P[1] + R[:, i, 2] * P[2] + t[:, i] for i in range(3)])
+        return np.stack([R[i, 0] * P[0] + R[i, 1] * P[1] + R[i, 2] * P[2] + t[i] for i in range(3)])
 
     Ao, Bo = to_mesh(A), to_mesh(B)
     grow = rr[:, None]
@@ -1408,7 +1439,8 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
     inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
     if inside.any() and not msh.convex:
-        inside[inside] = msh.mesh.contains(a[:, inside].T)
+        with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
+            inside[inside] = msh.mesh.contains(a[:, inside].T)
     hit |= inside
     order = np.lexsort((k[hit], c[hit]))
     return k[hit][order], c[hit][order]

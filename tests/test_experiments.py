@@ -136,6 +136,19 @@ def test_exp1_error_as_in_table_2(builds):
     assert -0.15 <= err["x"] <= -0.10
 
 
+def test_exp1_plan_file_is_the_same_with_and_without_the_mpc_helper(builds, tmp_path, monkeypatch):
+    """The helper process only changes where the pivots' MPC checks run: exp1, whose search removes
+    14 edges (9 of them by the MPC), writes the same plan.json, byte for byte, either way."""
+    b = builds.build("exp1_reach")
+    monkeypatch.setattr(plan, "_spare_core", lambda: True)  # whatever the machine's load
+    files = []
+    for helper in (True, False):
+        files.append(tmp_path / f"plan_{helper}.json")
+        plan.run(builds.scene("exp1_reach"), builds.analysis, b / "sample", b / "graph", files[-1],
+                 plan.Params(mpc_helper=helper))
+    assert files[0].read_bytes() == files[1].read_bytes()
+
+
 # --- Exp. 2: rotate (§6.4) ------------------------------------------------------------------------
 
 def test_exp2_turn_needs_regrasps(builds):
