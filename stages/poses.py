@@ -9,9 +9,10 @@ lattice. From the start pose, best first (below), every pose is
 - **tumbled** about each support-polygon edge (a hull edge at least ``min_tumble_edge`` long with
   both ends on the table) onto the adjacent hull face.
 
-Only placements that are SP on their own are sampled. The object touches the table where its
-support face, clipped to the table top, lies (:func:`table_support`; near the table's edge the edge
-cuts it). A new pose is SP when the CoM's vertical projection lies inside that polygon by
+Only placements that are SP on their own are sampled. The object touches the table where its mesh
+lies in the support plane, clipped to the table top (:func:`table_support`: the soles of a piano's
+feet, not the face between them; near the table's edge the edge cuts them). A new pose is SP when
+the CoM's vertical projection lies inside that polygon by
 ``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at most
 ``max_usp_overhang``, over the table's edge: the object would tip off the table unless one ball holds
 it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). It is rejected as
@@ -274,22 +275,34 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     return goal
 
 
-def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray) -> np.ndarray:
-    """Where the object at ``X`` on placement ``g`` touches the table: the support face's polygon
-    clipped to the table top (the table's edge cuts it when the object overhangs), ``(k, 2)`` m, W.
+def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = 1e-4) -> np.ndarray:
+    """Where the object at ``X`` on placement ``g`` touches the table, ``(k, 2)`` m, W: the convex
+    hull of the mesh's triangles that lie in the support plane (within ``tol`` m), each clipped to the
+    table top (the table's edge cuts them when the object overhangs); an object that touches the
+    plane at corners only (no triangle in it) touches it at those of its support corners that are on
+    the table. Not the support face's hull polygon clipped: a piano on two feet with one foot off the
+    table stands on the other foot alone, not on the part of the polygon between them.
 
     The object rests on that polygon; its CoM projection inside it is SP, outside it USP (the object
     tips over the polygon's edge unless a ball holds it, §5.1, Fig. 14).
     """
-    sup = np.asarray(model.support[g], dtype=np.int64)
-    p = se3.transform_points(X, model.vertices[sup])[:, :2]
-    poly = _convex_hull_2d(p)
-    for axis in (0, 1):  # Sutherland–Hodgman against the four table sides
-        for sign in (1.0, -1.0):
-            poly = _clip(poly, axis, sign, half[axis])
-            if len(poly) == 0:
-                return poly.reshape(0, 2)
-    return poly
+    Xp = model.X_TO[g]
+    z = model.mesh_vertices @ Xp[2, :3] + Xp[2, 3]
+    tri = model.mesh_faces[np.all(np.abs(z[model.mesh_faces]) < tol, axis=1)]
+    if len(tri) == 0:
+        p = se3.transform_points(X, model.vertices[np.asarray(model.support[g], dtype=np.int64)])[:, :2]
+        return _convex_hull_2d(p[np.all(np.abs(p) <= half, axis=1)]).reshape(-1, 2)
+    V = se3.transform_points(X, model.mesh_vertices)[:, :2][tri]                    # (n, 3, 2)
+    inside = np.all(np.abs(V) <= half, axis=2)                                      # (n, 3)
+    beyond = np.any(np.all(V > half, axis=1) | np.all(V < -half, axis=1), axis=1)  # all past one side
+    pieces = [V[inside.all(axis=1)].reshape(-1, 2)]
+    for poly in V[~beyond & ~inside.all(axis=1)]:  # only those the table's edge may cut
+        for axis in (0, 1):  # Sutherland–Hodgman against the four table sides
+            for sign in (1.0, -1.0):
+                poly = _clip(poly, axis, sign, half[axis])
+        pieces.append(poly)
+    pts = np.concatenate(pieces)
+    return _convex_hull_2d(pts).reshape(-1, 2) if len(pts) else pts
 
 
 def _clip(poly: np.ndarray, axis: int, sign: float, limit: float) -> np.ndarray:

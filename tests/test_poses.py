@@ -12,8 +12,8 @@ from stages.scene import ObstacleGeometry
 BOX = (0.2, 0.3, 0.4)
 
 
-def box_model(size=BOX) -> poses.ObjectModel:
-    mesh = trimesh.creation.box(size)
+def box_model(size=BOX, mesh=None) -> poses.ObjectModel:
+    mesh = trimesh.creation.box(size) if mesh is None else mesh
     r = analyze.compute(mesh, 2.0, analyze.Params())
     is_v = r.hull["kind"] == "vertex"
     return poses.ObjectModel(
@@ -96,6 +96,21 @@ def test_table_support_is_the_footprint_clipped_to_the_table():
     poly = poses.table_support(model, X, g, np.array([0.3, 0.3]))
     np.testing.assert_allclose(np.sort(poly[:, 0]), [0.23, 0.23, 0.3, 0.3], atol=1e-12)
     np.testing.assert_allclose(np.sort(poly[:, 1]), [-0.05, -0.05, 0.25, 0.25], atol=1e-12)
+
+
+def test_table_support_is_where_the_soles_touch_not_the_face_between_them():
+    """A bench on two feet with one foot past the table's edge stands on the other foot alone: the
+    support face's polygon clipped to the table would reach from that foot to the edge, over the gap."""
+    feet = [trimesh.creation.box((0.05, 0.3, 0.1), se3.make_transform(np.eye(3), [x, 0.0, 0.05])) for x in (-0.2, 0.2)]
+    top = trimesh.creation.box((0.5, 0.3, 0.1), se3.make_transform(np.eye(3), [0.0, 0.0, 0.15]))
+    model = box_model(mesh=trimesh.util.concatenate([*feet, top]))
+    X, g = upright(model, xy=(0.13, 0.0))  # feet at x -0.095..-0.045 (on) and 0.305..0.355 (off)
+    poly = poses.table_support(model, X, g, np.array([0.3, 0.3]))
+    np.testing.assert_allclose([poly[:, 0].min(), poly[:, 0].max()], [-0.095, -0.045], atol=1e-9)
+    np.testing.assert_allclose([poly[:, 1].min(), poly[:, 1].max()], [-0.15, 0.15], atol=1e-9)
+    X, g = upright(model, xy=(0.0, 0.0))  # both feet on: from the outer edge of one to the other's
+    poly = poses.table_support(model, X, g, np.array([0.3, 0.3]))
+    np.testing.assert_allclose([poly[:, 0].min(), poly[:, 0].max()], [-0.225, 0.225], atol=1e-9)
 
 
 def test_poses_hitting_an_obstacle_are_rejected_and_never_expanded():
