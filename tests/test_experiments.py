@@ -213,10 +213,10 @@ def test_exp3_needs_usp(builds):
 
 @pytest.mark.xfail(strict=True, reason="no regrasp in USP: tumbles into USP are refused (the lying piano's only USP "
                                        "catchers, on its top face, cannot hold the fall), and the USP poses pivoted "
-                                       "into from SP never need one: here the 25 ok USP regrasps out of the 43 USP "
-                                       "grasps reached reach 4 new grasps, whose 2 pivot edges are unstable; on ~150 "
-                                       "candidate layouts no goal that needs the tumble and USP has one on its "
-                                       "cheapest path")
+                                       "into from SP never need one: the 25 ok USP regrasps out of the 43 USP grasps "
+                                       "reached reach 4 new grasps, whose 2 pivot edges are unstable (counted before "
+                                       "the table contact came from the soles); on ~150 candidate layouts no goal "
+                                       "that needs the tumble and USP has one on its cheapest path")
 def test_exp3_regrasps_in_usp(builds):
     assert builds.plan("exp3_obstacle")["counts"]["usp_regrasp"] >= 1
 
