@@ -313,7 +313,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
                  None, L, prm, R_WD=X_c[mk[:, 0], :3, :3], alpha=alpha_c[mk[:, 0], mk[:, 1]])
     out["margin"][sp] = m.margin[minv.reshape(-1)]
     out["stable"] = sp
-    # USP: the object on the table's edge (its support face clipped to the table top) with both balls,
+    # USP: the object on its table contact (poses.table_support, cut by the edge) with both balls,
     # then with each ball alone.
     us = np.flatnonzero(usp)
     if len(us):
@@ -323,33 +323,36 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
         uniq, first = np.unique(pose_id[us], return_index=True)
         polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half)
                  for p, f in zip(uniq, first, strict=True)}
-        kmax = max(len(v) for v in polys.values())
-        V = np.zeros((len(us), kmax, 3))
-        mask = np.zeros((len(us), kmax), bool)
-        for k, i in enumerate(us):  # padded table-contact polygons, one per pose
-            poly = polys[int(pose_id[i])]
-            V[k, :len(poly), :2] = poly
-            mask[k, :len(poly)] = True
-        # Both balls, the left alone, the right alone: one batch of three copies of the candidates.
-        n = len(us)
-        em = np.ones((3, n, 2), bool)
-        em[1, :, 1] = em[2, :, 0] = False
-
-        def three(a):
-            return np.concatenate([a, a, a])
-
-        res = evaluate(mass, three(com[us]), three(V), three(mask), three(eef_p[us]), three(eef_n[us]),
-                       em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]), compute_margin=False)
-        stable = res.stable.reshape(3, n)
-        out["stable"][us] = stable[0]
-        out["hold_left"][us], out["hold_right"][us] = stable[1], stable[2]
-        # The margin of holding with both (not pivoting: holding is what a USP grasp must do first); a
-        # ball alone is only ever asked whether it holds, so its twelve margin LPs are not solved.
-        s0 = us[stable[0]]
-        m = evaluate(mass, com[s0], V[stable[0]], mask[stable[0]], eef_p[s0], eef_n[s0], None, L, prm,
-                     R_WD=X[s0, :3, :3], alpha=res.alpha[:n][stable[0]])
-        out["margin"][s0] = m.margin
+        size = np.array([len(polys[int(p)]) for p in pose_id[us]])
+        for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
+            _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate)
     return out
+
+
+def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate) -> None:
+    """USP candidates ``us`` whose table contact has ``kmax`` corners: hold with both balls, with the
+    left alone, with the right alone (one batch of three copies), and the both-ball margin."""
+    V = np.zeros((len(us), kmax, 3))
+    for k, i in enumerate(us):  # table-contact polygons, one per pose
+        V[k, :, :2] = polys[int(pose_id[i])]
+    n = len(us)
+    em = np.ones((3, n, 2), bool)
+    em[1, :, 1] = em[2, :, 0] = False
+
+    def three(a):
+        return np.concatenate([a, a, a])
+
+    res = evaluate(mass, three(com[us]), three(V), None, three(eef_p[us]), three(eef_n[us]),
+                   em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]), compute_margin=False)
+    stable = res.stable.reshape(3, n)
+    out["stable"][us] = stable[0]
+    out["hold_left"][us], out["hold_right"][us] = stable[1], stable[2]
+    # The margin of holding with both (not pivoting: holding is what a USP grasp must do first); a
+    # ball alone is only ever asked whether it holds, so its twelve margin LPs are not solved.
+    s0 = us[stable[0]]
+    m = evaluate(mass, com[s0], V[stable[0]], None, eef_p[s0], eef_n[s0], None, L, prm,
+                 R_WD=X[s0, :3, :3], alpha=res.alpha[:n][stable[0]])
+    out["margin"][s0] = m.margin
 
 
 POSE_FIELDS = [
