@@ -292,7 +292,7 @@ def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, t
     if len(tri) == 0:
         p = se3.transform_points(X, model.vertices[np.asarray(model.support[g], dtype=np.int64)])[:, :2]
         return _convex_hull_2d(p[np.all(np.abs(p) <= half, axis=1)]).reshape(-1, 2)
-    V = se3.transform_points(X, model.mesh_vertices)[:, :2][tri]                    # (n, 3, 2)
+    V = se3.transform_points(X, model.mesh_vertices[tri])[..., :2]                  # (n, 3, 2)
     inside = np.all(np.abs(V) <= half, axis=2)                                      # (n, 3)
     beyond = np.any(np.all(V > half, axis=1) | np.all(V < -half, axis=1), axis=1)  # all past one side
     pieces = [V[inside.all(axis=1)].reshape(-1, 2)]

@@ -332,9 +332,9 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
 def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate) -> None:
     """USP candidates ``us`` whose table contact has ``kmax`` corners: hold with both balls, with the
     left alone, with the right alone (one batch of three copies), and the both-ball margin."""
+    upose, inv = np.unique(pose_id[us], return_inverse=True)
     V = np.zeros((len(us), kmax, 3))
-    for k, i in enumerate(us):  # table-contact polygons, one per pose
-        V[k, :, :2] = polys[int(pose_id[i])]
+    V[:, :, :2] = np.stack([polys[int(p)] for p in upose])[inv.reshape(-1)]  # one polygon per pose
     n = len(us)
     em = np.ones((3, n, 2), bool)
     em[1, :, 1] = em[2, :, 0] = False

@@ -64,7 +64,8 @@ regrasp starts exactly where the plan expects; its contact must be able to hold 
 the fall, which a contact on a face other than the landing one is not (the lying piano's top face:
 the only USP grasps the sampler gives it, since ``stages.sample`` refuses a ball under the overhang as
 ``eef_under_object`` and for its centre below the table top); the MPC is then infeasible after the
-release, and the failure says so. The forces come from the tumbling MPC
+release. ``pivot plan`` runs the same MPC (:func:`tumble_mpc`) on every tumble into USP and refuses
+such a catch, so a plan it accepts does not fail here for it. The forces come from the tumbling MPC
 (``stages.mpc.run_tumble_mpc``), one run per segment of the roll, with the pusher switched off at
 its release. After the tumble each arm goes (a planned transit) to the configuration the plan
 assumes at the end of the step: the pusher to the end of its push, the catcher back where it was
