@@ -16,9 +16,10 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   balls at the largest tilt (the stability LP, with the friction and ball force the plan's MPC may
   use, ``friction_safety`` and ``force_safety``). Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
-  between two grasps that share one ball's contact, when that ball alone holds the object on its
-  table edge (``hold_*``, §5.2.2): the other ball moves. Undirected. The transit motions
-  themselves are planned lazily by ``pivot plan``.
+  between any two grasps of the pose whose balls can change their contacts one at a time, each
+  move made while the other ball alone holds the object on its table edge (``hold_*``, §5.2.2;
+  :func:`usp_regrasp_edges`). Undirected. The transit motions themselves are planned lazily by
+  ``pivot plan``.
 - **tumble** (weight ``w_tumble``, directed): over a support edge onto the next stable face
   (§5.2.2). One ball pushes: a contact whose inward normal drives the rotation, with IK and no
   collision along the first ``push_angle`` of the rotation (it then lets the object fall); the other
@@ -174,21 +175,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     sp_ids = np.flatnonzero(sp_grasp)  # one free-node edge per SP grasp
     edges += [(gi, f, "regrasp", w.regrasp / 2, "ok", -1, -1, -1, "both")
               for gi, f in zip(sp_ids.tolist(), free_of_pose[grasps["pose_id"][sp_ids]].tolist(), strict=True)]
-    usp_ids = np.flatnonzero(~sp_grasp)
-    for k, arm in ((0, "left"), (1, "right")):
-        hold = grasps["hold_left" if k == 0 else "hold_right"]
-        key = np.stack([grasps["pose_id"][usp_ids], (grasps["contact_left"] if k == 0 else
-                                                     grasps["contact_right"])[usp_ids]], axis=1)
-        order = np.lexsort((usp_ids, key[:, 1], key[:, 0]))
-        ids, key = usp_ids[order], key[order]
-        bounds = np.flatnonzero(np.any(np.diff(key, axis=0) != 0, axis=1)) + 1
-        for group in np.split(ids, bounds):  # grasps of one USP pose sharing this ball's contact
-            for i in range(len(group)):
-                for j in range(i + 1, len(group)):
-                    a, b = group[i], group[j]
-                    status = "ok" if hold[a] else "unstable"
-                    mover = "right" if arm == "left" else "left"
-                    edges.append((a, b, "regrasp", w.regrasp, status, -1, -1, -1, mover))
+    edges += usp_regrasp_edges(grasps, np.flatnonzero(~sp_grasp), q_g, X_WO, collide, w.regrasp)
     t1 = time.perf_counter()
 
     # --- pivot edges --------------------------------------------------------------------------
@@ -298,6 +285,63 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     }
     timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
     return Graph(nodes, edge_cols, summary, timings)
+
+
+def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> list[tuple]:
+    """Regrasp edges between the grasps of each USP pose: the balls change their contacts in turn (§5.2.2).
+
+    From grasp (a, b) to (c, d) of one pose (contacts of the left, right ball): when a = c only the
+    right ball moves while the left one alone holds the object on its table edge (``hold_left``), and
+    likewise when b = d. Otherwise both move, one after the other (§1: "the left EEF moves to the
+    desired position while the right EEF maintains contact with the object and vice versa"): the right
+    first (the left holds at a; then the right holds at d while the left moves), which needs
+    ``hold_left`` of (a, b) and ``hold_right`` of (c, d) and the two arms at (a, d) free of collision,
+    or else the left first, with the holds and the arms at (c, b). The edge's ``arm`` names the movers
+    in order from ``node_a`` to ``node_b`` ("right,left"); the reverse edge moves them in the other
+    order through the same intermediate configuration. Every pair of grasps of a USP pose is a
+    candidate: ``unstable`` when no order has both holds, else the collision reason of its
+    intermediate configuration.
+
+    Parameters
+    ----------
+    grasps : the grasps table (``pose_id``, ``contact_left``, ``contact_right``, ``hold_left``, ``hold_right``).
+    usp_ids : (U,) ids of the grasps of USP poses.
+    q_g : (G, 2, n) joints of every grasp (left, right).
+    X_WO : (P, 4, 4) poses.
+
+    Returns a list of ``(a, b, "regrasp", weight, status, -1, -1, -1, movers)`` rows, a < b.
+    """
+    pose = grasps["pose_id"][usp_ids]
+    order = np.lexsort((usp_ids, pose))
+    ids, pose = usp_ids[order], pose[order]
+    a_l, b_l = [], []  # every pair (i < j) of grasps of one pose, in id order
+    for group in np.split(ids, np.flatnonzero(np.diff(pose)) + 1):  # one group per USP pose: a few hundred
+        i, j = np.triu_indices(len(group), 1)
+        a_l.append(group[i])
+        b_l.append(group[j])
+    a = np.concatenate(a_l) if a_l else np.zeros(0, np.int64)
+    b = np.concatenate(b_l) if b_l else np.zeros(0, np.int64)
+    cl, cr = grasps["contact_left"], grasps["contact_right"]
+    hl, hr = np.asarray(grasps["hold_left"], bool), np.asarray(grasps["hold_right"], bool)
+    same_l, same_r = cl[a] == cl[b], cr[a] == cr[b]
+    both = ~same_l & ~same_r
+    movers = np.where(same_l, "right", np.where(same_r, "left", "right,left")).astype(object)
+    right_first = both & hl[a] & hr[b]  # the left holds at a, then the right at d
+    left_first = both & hr[a] & hl[b]  # the right holds at b, then the left at c
+    status = np.where(same_l, np.where(hl[a], "ok", "unstable"),
+                      np.where(same_r, np.where(hr[a], "ok", "unstable"), "unstable")).astype(object)
+    done = ~both
+    for first, l_of, r_of, name in ((right_first, a, b, "right,left"), (left_first, b, a, "left,right")):
+        rows = np.flatnonzero(first & ~done)  # the right first when it can, else the left first
+        if len(rows) == 0:
+            continue
+        ok, why = collide(q_g[l_of[rows], 0], q_g[r_of[rows], 1], X_WO[grasps["pose_id"][a[rows]]],
+                          np.ones((len(rows), 2), bool))
+        status[rows] = why
+        movers[rows[ok]] = name
+        done[rows[ok]] = True
+    return [(int(x), int(y), "regrasp", weight, str(st), -1, -1, -1, str(m))
+            for x, y, st, m in zip(a.tolist(), b.tolist(), status, movers, strict=True)]
 
 
 def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):

@@ -7,7 +7,7 @@ robot's actual joint configuration along (it starts at the home posture, all joi
 - **regrasp** (node → free → node in SP; node → node in USP): a collision-free transit of each
   moving arm from its current configuration to the new grasp's IK solution, with retreat and
   approach along the contact normals (``stages.transit``, OMPL's RRT-Connect). In SP the left arm
-  moves, then the right; in USP only the arm the edge names, while the other holds.
+  moves, then the right; in USP the arms the edge names, one at a time, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
   flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
   friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
@@ -166,6 +166,13 @@ def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, 
     return G, start, goal
 
 
+def movers(edges: dict, edge_id: int, u: int) -> list[str]:
+    """The arms a USP regrasp edge moves, in turn, when it is walked from node ``u``: the order its
+    ``arm`` column names from ``node_a`` (``"right,left"``), reversed from ``node_b``."""
+    arms = str(edges["arm"][edge_id]).split(",")
+    return arms if u == int(edges["node_a"][edge_id]) else arms[::-1]
+
+
 def _transit(ctx: _Context, params: Params, state: _State, arm: str, q_goal, n_goal):
     other = "right" if arm == "left" else "left"
     return transit.plan_transit(ctx.robot, ctx.collide, arm, state.q[arm], q_goal, state.q[other], state.X_WO,
@@ -188,8 +195,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         if nodes["kind"][v] == "free":  # release: the balls stay, backing off at the next transit
             step["arms"] = []
             return True, "ok", step, state
-        arms = ["left", "right"] if nodes["kind"][u] == "free" else [
-            str(ctx.edges["arm"][data["edge_id"]])]
+        arms = ["left", "right"] if nodes["kind"][u] == "free" else movers(ctx.edges, data["edge_id"], u)
         new = _State(dict(state.q), dict(state.normal), state.X_WO)
         paths = {}
         for arm in arms:

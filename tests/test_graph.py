@@ -1,0 +1,66 @@
+"""Graph edges on hand-made grasp tables whose answers can be counted by hand (stages.graph)."""
+
+import numpy as np
+
+from stages import graph, plan
+
+
+def _grasps(rows):
+    """Grasp table from ``(pose, left contact, right contact, hold_left, hold_right)`` rows."""
+    pose, cl, cr, hl, hr = (np.array(c) for c in zip(*rows, strict=True))
+    return {"pose_id": pose, "contact_left": cl, "contact_right": cr, "hold_left": hl.astype(bool),
+            "hold_right": hr.astype(bool)}
+
+
+def _collide(blocked):
+    """A checker that knows each arm's grasp by its first joint and refuses the (left, right) pairs named."""
+    def collide(q_left, q_right, X_WO, touching):
+        assert touching.all()  # both balls are on the object in the intermediate configuration
+        bad = np.array([(int(a), int(b)) in blocked for a, b in zip(q_left[:, 0], q_right[:, 0], strict=True)],
+                       dtype=bool).reshape(-1)
+        return ~bad, np.where(bad, "self_collision:left_ball/right_ball", "ok")
+    return collide
+
+
+def _edges(rows, blocked=()):
+    gr = _grasps(rows)
+    G = len(rows)
+    q = np.zeros((G, 2, 7))
+    q[:, 0, 0] = q[:, 1, 0] = np.arange(G)  # joint 0 names the grasp
+    out = graph.usp_regrasp_edges(gr, np.arange(G), q, np.repeat(np.eye(4)[None], 3, axis=0), _collide(blocked), 0.5)
+    return {(a, b): (st, arm) for a, b, prim, w, st, *_, arm in out if prim == "regrasp" and w == 0.5}
+
+
+def test_usp_regrasp_moves_one_ball_while_the_other_holds_alone():
+    # grasp: 0 = (1, 2), 1 = (1, 3): the left ball stays on contact 1 and must hold alone.
+    assert _edges([(0, 1, 2, True, False), (0, 1, 3, True, False)]) == {(0, 1): ("ok", "right")}
+    assert _edges([(0, 1, 2, False, True), (0, 1, 3, False, True)]) == {(0, 1): ("unstable", "right")}
+    # The right ball stays on contact 2.
+    assert _edges([(0, 1, 2, False, True), (0, 4, 2, False, True)]) == {(0, 1): ("ok", "left")}
+
+
+def test_usp_regrasp_of_both_balls_goes_in_the_order_whose_holds_and_arms_allow_it():
+    # (1, 2) -> (4, 5): the right first needs hold_left of (1, 2) and hold_right of (4, 5), the arms at (1, 5).
+    assert _edges([(0, 1, 2, True, False), (0, 4, 5, False, True)]) == {(0, 1): ("ok", "right,left")}
+    # The left first needs hold_right of (1, 2) and hold_left of (4, 5), the arms at (4, 2).
+    assert _edges([(0, 1, 2, False, True), (0, 4, 5, True, False)]) == {(0, 1): ("ok", "left,right")}
+    # No order in which one ball always holds: refused.
+    assert _edges([(0, 1, 2, True, False), (0, 4, 5, True, False)]) == {(0, 1): ("unstable", "right,left")}
+    # Both orders hold; the right-first arms (grasp 0's left, grasp 1's right) collide, the left-first do not.
+    rows = [(0, 1, 2, True, True), (0, 4, 5, True, True)]
+    assert _edges(rows) == {(0, 1): ("ok", "right,left")}
+    assert _edges(rows, blocked={(0, 1)}) == {(0, 1): ("ok", "left,right")}
+    st, _ = _edges(rows, blocked={(0, 1), (1, 0)})[(0, 1)]
+    assert st == "self_collision:left_ball/right_ball"
+
+
+def test_usp_regrasp_pairs_only_grasps_of_one_pose():
+    rows = [(0, 1, 2, True, True), (2, 4, 5, True, True), (0, 6, 7, True, True), (2, 1, 2, True, True)]
+    assert set(_edges(rows)) == {(0, 2), (1, 3)}
+
+
+def test_plan_walks_a_usp_regrasp_backwards_in_the_reverse_order():
+    edges = {"arm": np.array(["right,left", "left"]), "node_a": np.array([10, 10]), "node_b": np.array([11, 12])}
+    assert plan.movers(edges, 0, 10) == ["right", "left"]
+    assert plan.movers(edges, 0, 11) == ["left", "right"]
+    assert plan.movers(edges, 1, 12) == ["left"]
