@@ -5,7 +5,9 @@ Nodes (``nodes.parquet``):
 - a **grasp node** per feasible grasp of a sampled pose (node id = grasp id): the object at that pose,
   both balls on the grasp's contacts;
 - a **free node** per SP pose: the object standing alone, both arms away. It makes regrasping in SP
-  linear in the number of grasps: grasp → free → grasp costs the regrasp weight, split in two.
+  linear in the number of grasps: grasp → free → grasp costs the regrasp weight, split in two;
+- a **catch node** per catching candidate of a tumble into USP (``catches.parquet``: pose, arm,
+  contact, joints, status): the object just tumbled, one ball holding it alone (Fig. 14).
 
 Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its reason code):
 
@@ -23,9 +25,14 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
 - **tumble** (weight ``w_tumble``, directed): over a support edge onto the next stable face
   (§5.2.2). One ball pushes: a contact whose inward normal drives the rotation, with IK and no
   collision along the first ``push_angle`` of the rotation (it then lets the object fall); the other
-  arm stays away. Into SP: free node → free node. Into USP (Fig. 14): free node → the grasp nodes of
-  the new pose whose catching ball (the other arm) holds the object alone; the pusher then moves to
-  its contact of that grasp while the catcher holds.
+  arm stays away. Into SP: free node → free node. Into USP (Fig. 14): free node → a **catch node**
+  of the new pose (its catching ball, the other arm's, waits on the landing face under the overhang
+  beyond the table's edge and then holds the object alone, :func:`catch_candidates`; the candidates
+  and their checks are in ``catches.parquet``, rejected ones with their reason, which the tumble
+  edges into them carry).
+- **hand-over** (a regrasp, weight ``w_regrasp``, directed; :func:`handover_edges`): catch node →
+  each grasp of its pose: the pusher takes its contact of the grasp while the catcher holds, then
+  the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f).
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import artifacts, mpc, se3, stability
+from stages import artifacts, mpc, poses, se3, stability
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -60,6 +67,12 @@ class Params:
     push_candidates: int = 8
     #: The pusher's inward normal must be within this angle of the contact's motion direction.
     push_cone: float = np.radians(50.0)
+    #: A catcher of a tumble into USP (:func:`catch_candidates`): on the landing face (its outward normal
+    #: within ``catch_cone`` of straight down after the landing), its ball at least ``catch_clearance``
+    #: beyond the table's edge; ``catch_candidates`` per tumble and arm, largest lever first.
+    catch_cone: float = np.radians(30.0)
+    catch_clearance: float = 0.01
+    catch_candidates: int = 8
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
@@ -79,6 +92,7 @@ class Params:
 class Graph:
     nodes: dict
     edges: dict
+    catches: dict
     summary: dict
     timings: dict
 
@@ -246,20 +260,35 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     la, lb = links["pose_a"][tumbles], links["pose_b"][tumbles]
     tumble_edges = np.stack([links["edge_v0"][tumbles], links["edge_v1"][tumbles]], axis=1).astype(np.int64)
     found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params)
-    catcher_hold = {"left": grasps["hold_right"], "right": grasps["hold_left"]}
+    into_usp = ps["support"][lb] == "USP"
+    catches = catch_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], lb[into_usp],
+                               tumble_edges[into_usp], params)
+    catch_ids = G + len(kept_sp) + np.arange(len(catches["pose_id"]))
+    catches["node_id"] = catch_ids
+    by_landing: dict[tuple, list] = {}  # (pose, catcher arm) -> catch nodes
+    for n, pose, arm in zip(catch_ids.tolist(), catches["pose_id"].tolist(), catches["arm"].tolist(), strict=True):
+        by_landing.setdefault((pose, arm), []).append(n)
     for a, b, (e0, e1), (arm, what, _) in zip(la, lb, tumble_edges, found, strict=True):
         pusher, why = (arm, "ok") if arm is not None else ("none", what)
         src = free_of_pose[a]
         if ps["support"][b] == "SP":
             edges.append((src, free_of_pose[b], "tumble", w.tumble, why, -1, e0, e1, pusher))
             continue
-        for gb in by_pose.get(int(b), {}).values():
-            st = why
-            if st == "ok" and not catcher_hold[pusher][gb]:
-                st = "unstable"
-            edges.append((src, gb, "tumble", w.tumble, st, -1, e0, e1, pusher))
+        # Into USP (Fig. 14): onto a catch node of the other arm; a failed pusher is the reason for all.
+        arms = ("left", "right") if pusher == "none" else ("right" if pusher == "left" else "left",)
+        for catcher in arms:
+            for n in by_landing.get((int(b), catcher), []):
+                st = why if why != "ok" else str(catches["status"][n - catch_ids[0]])
+                edges.append((src, n, "tumble", w.tumble, st, -1, e0, e1, pusher))
+    edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
     t3 = time.perf_counter()
 
+    nc_ = len(catch_ids)
+    nodes = {"node_id": np.r_[nodes["node_id"], catch_ids],
+             "kind": np.r_[nodes["kind"], np.full(nc_, "catch")],
+             "pose_id": np.r_[nodes["pose_id"], catches["pose_id"]].astype(np.int64),
+             "grasp_id": np.r_[nodes["grasp_id"], -np.ones(nc_, np.int64)],
+             "support": np.r_[nodes["support"], np.full(nc_, "USP")].astype(str)}
     E = len(edges)
     cols = list(zip(*edges, strict=True)) if E else [[]] * 9
     edge_cols = {
@@ -269,7 +298,8 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
         "primitive": np.array(cols[2], dtype=str),
         "weight": np.array(cols[3], dtype=float),
         "status": np.array(cols[4], dtype=str),
-        "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool),
+        "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool) | np.isin(np.array(cols[0], np.int64),
+                                                                                      catch_ids),
         "vertex": np.array(cols[5], dtype=np.int64),
         "edge_v0": np.array(cols[6], dtype=np.int64),
         "edge_v1": np.array(cols[7], dtype=np.int64),
@@ -277,14 +307,15 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     }
     st, ct = np.unique(edge_cols["status"], return_counts=True)
     summary = {
-        "nodes": {"grasp": int(G), "free": int(len(kept_sp))},
+        "nodes": {"grasp": int(G), "free": int(len(kept_sp)), "catch": int(np.sum(catches["status"] == "ok")),
+                  "catch_rejected": int(np.sum(catches["status"] != "ok"))},
         "edges": {p: {"ok": int(((edge_cols["primitive"] == p) & (edge_cols["status"] == "ok")).sum()),
                       "rejected": int(((edge_cols["primitive"] == p) & (edge_cols["status"] != "ok")).sum())}
                   for p in ("pivot", "regrasp", "tumble")},
         "reasons": {str(s): int(c) for s, c in zip(st, ct, strict=True) if s != "ok"},
     }
     timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
-    return Graph(nodes, edge_cols, summary, timings)
+    return Graph(nodes, edge_cols, catches, summary, timings)
 
 
 def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> list[tuple]:
@@ -342,6 +373,129 @@ def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> lis
         done[rows[ok]] = True
     return [(int(x), int(y), "regrasp", weight, str(st), -1, -1, -1, str(m))
             for x, y, st, m in zip(a.tolist(), b.tolist(), status, movers, strict=True)]
+
+
+def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placement, pose_b, edge_v,
+                     params: Params) -> dict:
+    """Where a ball can wait for an object tumbled into USP, catch it and hold it alone (§5.2.2, Fig. 14).
+
+    For each tumble over hull edge ``edge_v (K, 2)`` onto the USP pose ``pose_b (K,)`` (``X_WO (P, 4, 4)``
+    and ``placement (P,)`` of every pose), the
+    candidates of each arm are the contacts on the landing face (outward normal within ``catch_cone``
+    of straight down at the landing) whose ball lies beyond the table's edge by ``catch_clearance``
+    (the ball under the overhang: the notes' catcher on the face the object falls onto; a ball on
+    another face cannot stop the fall, ``stages.plan`` checks the fall with the tumbling MPC), the
+    ``catch_candidates`` with the largest lever about the tumble's axis (less half their offset from
+    the CoM along it) first. A candidate (pose, arm, contact) is checked once: IK of the ball centre
+    at the landing, no collision with the other arm at rest (only the catching ball touches the
+    object) and the object held by that ball alone on its table contact (``poses.table_support``; the
+    stability LP with the scene's friction and force bound and the CoM moved out by the SP margin,
+    ``poses.held_com``, as ``stages.sample`` checks ``hold_*``).
+
+    Returns columns ``pose_id, arm, contact, status`` (``ok`` or the first failure) and ``q (N, n)``.
+    """
+    con = tables["contacts"]
+    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    r, half = scene.robot.ball_radius, np.asarray(scene.table.size) / 2
+    rows: dict[tuple, None] = {}  # (pose, arm, contact), in the order first found
+    for b, (e0, e1) in zip(np.asarray(pose_b).tolist(), np.asarray(edge_v).tolist(), strict=True):  # a few dozen
+        X = X_WO[b]
+        n_W = se3.rotate_vectors(X, n_O)
+        ball = se3.transform_points(X, p_O) + r * n_W
+        beyond = np.max(np.abs(ball[:, :2]) - half, axis=1) >= r + params.catch_clearance
+        cand = np.flatnonzero((n_W[:, 2] <= -np.cos(params.catch_cone)) & beyond)
+        axis = model.vertices[e1] - model.vertices[e0]
+        axis /= np.linalg.norm(axis)
+        rel = p_O[cand] - model.vertices[e0]
+        lever = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
+        off = np.abs((p_O[cand] - model.com) @ axis)
+        best = cand[np.lexsort((cand, -(lever - 0.5 * off)))][: params.catch_candidates]
+        for arm in ("left", "right"):
+            rows.update(dict.fromkeys((b, arm, int(c)) for c in best))
+    n = robot.arm("left").dof
+    N = len(rows)
+    pose = np.array([k[0] for k in rows], dtype=np.int64)
+    arm = np.array([k[1] for k in rows], dtype=str)
+    contact = np.array([k[2] for k in rows], dtype=np.int64)
+    status = np.full(N, "ok", dtype=object)
+    q = np.zeros((N, n))
+    X = X_WO[pose] if N else np.zeros((0, 4, 4))
+    ball = se3.transform_points(X, p_O[contact] + r * n_O[contact]) if N else np.zeros((0, 3))
+    for k, name in enumerate(("left", "right")):
+        sel = np.flatnonzero(arm == name)
+        if len(sel) == 0:
+            continue
+        res = robot.ik(name, ball[sel], rng=np.random.default_rng(0), restarts=1, tol=params.ik_tol)
+        q[sel] = res.q
+        status[sel[~res.ok]] = res.reason[~res.ok]
+        live = sel[res.ok]
+        if len(live):
+            rest = np.broadcast_to(robot.arm("right" if name == "left" else "left").q_rest, (len(live), n))
+            ql, qr = (q[live], rest) if name == "left" else (rest, q[live])
+            touching = np.zeros((len(live), 2), bool)
+            touching[:, k] = True
+            ok, why = collide(ql, qr, X[live], touching)
+            status[live[~ok]] = why[~ok]
+    live = np.flatnonzero(status == "ok")
+    if len(live):
+        polys = {b: poses.table_support(model, X_WO[b], int(placement[b]), half)
+                 for b in np.unique(pose[live]).tolist()}
+        kmax = max(len(v) for v in polys.values())
+        V = np.zeros((len(live), kmax, 3))
+        mask = np.zeros((len(live), kmax), bool)
+        for i, b in enumerate(pose[live].tolist()):  # a few hundred candidates
+            V[i, :len(polys[b]), :2] = polys[b]
+            mask[i, :len(polys[b])] = True
+        sp_margin = float(tables["placements"].meta["params"]["sp_margin"])
+        com = np.stack([poses.held_com(polys[b], se3.transform_points(X_WO[b], model.com), sp_margin)
+                        for b in pose[live].tolist()])
+        res = stability.evaluate(scene.object.mass, com, V, mask,
+                                 se3.transform_points(X[live], p_O[contact[live]])[:, None],
+                                 -se3.rotate_vectors(X[live], n_O[contact[live]])[:, None], None,
+                                 float(np.linalg.norm(tables["summary"]["extents"]) / 2),
+                                 stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
+                                                  f_max=scene.robot.max_eef_force), compute_margin=False)
+        status[live[~res.stable]] = "unstable"
+    return {"pose_id": pose, "arm": arm, "contact": contact, "status": status.astype(str), "q": q}
+
+
+def handover_edges(catches: dict, grasps, q_g, X_WO, collide, weight: float) -> list[tuple]:
+    """Directed regrasp edges from each ok catch node to the grasps of its pose (Fig. 14, 18 e-f).
+
+    The catcher (arm k on contact e) holds the object alone; the other ball (the pusher) takes its
+    contact of grasp (c, d); when the grasp's contact of arm k is not e, the catcher then moves to it
+    while the pusher's ball alone holds the object (``hold_*`` of the grasp). The two arms at the
+    pusher's grasp configuration and the catcher's must be free of collision (both balls on the
+    object). ``arm`` names the movers in order ("left" or "left,right").
+    """
+    ok = np.flatnonzero(catches["status"] == "ok")
+    by_pose: dict[int, np.ndarray] = {}
+    out = []
+    rows = []  # (catch row, grasp)
+    for i in ok.tolist():  # a few hundred catches, each with the grasps of its pose
+        pose = int(catches["pose_id"][i])
+        if pose not in by_pose:
+            by_pose[pose] = np.flatnonzero(grasps["pose_id"] == pose)
+        rows += [(i, g) for g in by_pose[pose].tolist()]
+    if not rows:
+        return out
+    ci, g = np.array(rows, dtype=np.int64).T
+    catcher = catches["arm"][ci]
+    k = (catcher == "right").astype(int)  # the catcher's index, 1 - k the pusher's
+    c_catch = catches["contact"][ci]
+    c_grasp = np.where(k == 0, grasps["contact_left"][g], grasps["contact_right"][g])
+    pusher_holds = np.where(k == 0, grasps["hold_right"][g], grasps["hold_left"][g]).astype(bool)
+    same = c_grasp == c_catch
+    q_c = catches["q"][ci]
+    ql = np.where((k == 0)[:, None], q_c, q_g[g, 0])
+    qr = np.where((k == 1)[:, None], q_c, q_g[g, 1])
+    free, why = collide(ql, qr, X_WO[catches["pose_id"][ci]], np.ones((len(ci), 2), bool))
+    status = np.where(~same & ~pusher_holds, "unstable", why)
+    pusher = np.where(k == 0, "right", "left")
+    movers = np.where(same, pusher, np.char.add(np.char.add(pusher, ","), catcher.astype(str)))
+    return [(int(n), int(x), "regrasp", weight, str(st), -1, -1, -1, str(m))
+            for n, x, st, m in zip(catches["node_id"][ci].tolist(), g.tolist(), status, movers, strict=True)]
 
 
 def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):
@@ -434,6 +588,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
 
 NODE_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("grasp_id", "id"),
                Field("support")]
+CATCH_FIELDS = [Field("node_id", "id"), Field("pose_id", "id"), Field("arm"), Field("contact", "id"), Field("status"),
+                Field("q", "rad")]
 EDGE_FIELDS = [Field("edge_id", "id"), Field("node_a", "id"), Field("node_b", "id"), Field("primitive"),
                Field("weight"), Field("status"), Field("directed"), Field("vertex", "id"), Field("edge_v0", "id"),
                Field("edge_v1", "id"), Field("arm")]
@@ -452,6 +608,8 @@ def run(scene_path, analysis_dir, sample_dir, out_dir, params: Params, producer:
                           artifacts.make_meta("nodes", meta_params, inputs, producer))
     artifacts.write_table(out / "edges.parquet", graph.edges, EDGE_FIELDS,
                           artifacts.make_meta("edges", meta_params, inputs, producer))
+    artifacts.write_table(out / "catches.parquet", {**graph.catches, "q": list(graph.catches["q"])}, CATCH_FIELDS,
+                          artifacts.make_meta("catches", meta_params, inputs, producer))
     artifacts.write_json(out / "graph.json", graph.summary, artifacts.make_meta("graph", meta_params, inputs, producer))
     artifacts.write_timings(out / "graph.json", graph.timings)
     return graph

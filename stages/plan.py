@@ -14,10 +14,12 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
-  posture (``{other}_before``), where the graph's pusher check has it. Into USP
-  (Fig. 18 b–f) the catcher first moves to its contact of the destination grasp while the object
-  still stands (``{catcher}_before``), and after the push the pusher moves to its own contact of that
-  grasp while the catcher holds (``{pusher}_after``): a regrasp in USP.
+  posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
+  Fig. 18 b–d) the catcher first moves to its catching configuration while the object still stands
+  (``{catcher}_before``), the tumbling MPC must lower the object onto it and hold it there
+  (:func:`_usp_tumble_mpc`), and after the push the catcher holds the object alone; the hand-over
+  that follows (a regrasp edge out of the catch node, Fig. 18 e–f) moves the pusher to its contact
+  of the grasp, then the catcher to its own while the pusher's ball holds: a regrasp in USP.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
 are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept
@@ -112,6 +114,9 @@ class _Context:
         self.sample = artifacts.read_json(sd / "sample.json", "sample")
         self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
+        catches = artifacts.read_table(gd / "catches.parquet", "catches")
+        self.catch = {int(n): (str(a), int(c), np.asarray(q, dtype=float)) for n, a, c, q in
+                      zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
         self.X_WO = se3.matrix_from_columns(self.poses.columns)
         self.robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
         self.collide = make_scene_collision_fn(scene, self.robot, self.tables["mesh"])
@@ -123,6 +128,7 @@ class _Context:
             "right": np.stack(list(self.grasps["q_right"])) if len(self.grasps) else np.zeros((0, 7)),
         }
         self.inputs = {"scene": scene.path, "nodes": gd / "nodes.parquet", "edges": gd / "edges.parquet",
+                       "catches": gd / "catches.parquet",
                        "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet"}
 
     def contact(self, grasp: int, arm: str) -> int:
@@ -203,7 +209,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
             n_goal = se3.rotate_vectors(new.X_WO, ctx.n_O[c])
             res = _transit(ctx, params, new, arm, ctx.q_grasp[arm][gv], n_goal)
             if res.status != "ok":
-                return False, res.status, step, state
+                return False, res.status, {**step, "detail": f"{arm} arm: {res.reason}"}, state
             paths[arm] = res.path
             new.q[arm] = res.path[-1]
             new.normal[arm] = n_goal
@@ -237,9 +243,11 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     c, q_push = found
     new = _State(dict(state.q), dict(state.normal), Xa)
     catcher = "right" if pusher == "left" else "left"
-    into_usp = nodes["kind"][v] == "grasp"
+    into_usp = nodes["kind"][v] == "catch"
+    if into_usp:
+        _, c_catch, q_catch = ctx.catch[v]
     if into_usp and params.check_mpc:  # the catcher's contact must lower the object into USP and hold it
-        why = _usp_tumble_mpc(ctx, params, Xa, e0, e1, c, ctx.contact(gv, catcher))
+        why = _usp_tumble_mpc(ctx, params, Xa, e0, e1, c, c_catch)
         if why:
             return False, "mpc_infeasible", step, state
     transits = {}
@@ -248,32 +256,26 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         # last grasp left it, the object would fall onto it (then no transit could start there).
         res = _transit(ctx, params, new, catcher, ctx.robot.arm(catcher).q_rest, None)
         if res.status != "ok":
-            return False, res.status, step, state
+            return False, res.status, {**step, "detail": f"{catcher} arm: {res.reason}"}, state
         new.q[catcher], new.normal[catcher] = res.path[-1], None
         transits[f"{catcher}_before"] = res.path.tolist()
     if into_usp:  # the catcher first goes where the object will land on it (Fig. 18 b, c)
-        res = _transit(ctx, params, new, catcher, ctx.q_grasp[catcher][gv], None)
+        res = _transit(ctx, params, new, catcher, q_catch, None)
         if res.status != "ok":
-            return False, res.status, step, state
+            return False, res.status, {**step, "detail": f"{catcher} arm: {res.reason}"}, state
         new.q[catcher], new.normal[catcher] = res.path[-1], None
         transits[f"{catcher}_before"] = res.path.tolist()
     res = _transit(ctx, params, new, pusher, q_push[0], se3.rotate_vectors(Xa, ctx.n_O[c]))
     if res.status != "ok":
-        return False, res.status, step, state
+        return False, res.status, {**step, "detail": f"{pusher} arm: {res.reason}"}, state
     transits[pusher] = res.path.tolist()
     new.q[pusher] = q_push[-1]
     new.normal[pusher] = None
     new.X_WO = Xb
     step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit=transits)
-    if into_usp:  # the catcher holds; the pusher takes its contact of the new grasp
-        new.normal[catcher] = se3.rotate_vectors(Xb, ctx.n_O[ctx.contact(gv, catcher)])
-        n_goal = se3.rotate_vectors(Xb, ctx.n_O[ctx.contact(gv, pusher)])
-        res = _transit(ctx, params, new, pusher, ctx.q_grasp[pusher][gv], n_goal)
-        if res.status != "ok":
-            return False, res.status, step, state
-        new.q[pusher], new.normal[pusher] = res.path[-1], n_goal
-        step["transit"][f"{pusher}_after"] = res.path.tolist()
-        step.update(grasp_to=gv, catcher=catcher)
+    if into_usp:  # the catcher holds the object alone; the next step (a regrasp) hands it over
+        new.normal[catcher] = se3.rotate_vectors(Xb, ctx.n_O[c_catch])
+        step.update(catcher=catcher, catch_contact=c_catch)
     return True, "ok", step, new
 
 
@@ -553,7 +555,7 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
                 checked[key] = _check_step(ctx, params, state, u, v, data)
             ok, why, step, state = checked[key]
             if not ok:
-                failed = (u, v, data, why)
+                failed = (u, v, data, why, step.get("detail"))
                 break
             if data["primitive"] == "pivot" and params.check_mpc:
                 pivots.append((len(steps), u, v, data))
@@ -565,7 +567,7 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
         for i, u, v, data in pivots:
             why, err, f_peak = mpc_checks.outcome(u, v, data["edge_id"])
             if why != "ok":
-                failed, steps = (u, v, data, why), steps[:i]
+                failed, steps = (u, v, data, why, None), steps[:i]
                 break
             steps[i].update(mpc_max_error=err, mpc_peak_force=f_peak)
         if failed is None:
@@ -574,17 +576,17 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
             # A regrasp changes a grasp: the first grasp out of the start's free node is not one.
             counts["regrasp"] = sum(1 for s in steps if s["primitive"] == "regrasp" and s.get("arms")
                                     and s["node_from"] != start)
-            # Regrasps while one ball holds the object in USP: USP regrasp edges and tumbles into USP.
-            counts["usp_regrasp"] = sum(1 for s in steps if s["support"] == "USP" and (
-                s["primitive"] == "regrasp" and s.get("arms") or s["primitive"] == "tumble" and "grasp_to" in s))
+            # Regrasps while one ball holds the object in USP (after a catch too: the hand-over).
+            counts["usp_regrasp"] = sum(1 for s in steps if s["support"] == "USP" and s["primitive"] == "regrasp"
+                                        and s.get("arms"))
             out = {"status": "partial" if partial else "ok", "steps": steps, "log": log, "cost": cost,
                    "counts": counts, "nodes": [int(n) for n in path]}
             if partial:
                 out["remaining_error"] = partial
             return out
-        u, v, data, why = failed
+        u, v, data, why, detail = failed
         log.append({"edge_id": data["edge_id"], "primitive": data["primitive"], "node_a": int(u), "node_b": int(v),
-                    "reason": why})
+                    "reason": why, **({"detail": detail} if detail else {})})
         G.remove_edge(u, v)
         if not ctx.edges["directed"][data["edge_id"]] and G.has_edge(v, u):
             G.remove_edge(v, u)

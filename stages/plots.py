@@ -231,7 +231,8 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     com = np.asarray(summary["com"])
     X = se3.matrix_from_columns(ps.columns)
     p = se3.transform_points(X, com)[:, :2]
-    # Node positions: grasps on a ring of radius 1 cm around their pose, free nodes at the centre.
+    # Node positions: grasps on a ring of radius 1.2 cm around their pose, catches on one of 0.6 cm,
+    # free nodes at the centre.
     pose = nodes["pose_id"]
     rank = np.zeros(len(nodes))
     order = np.lexsort((nodes["node_id"], pose))
@@ -239,7 +240,7 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank[order] = np.arange(len(order)) - start[pose[order]]
     ang = 2 * np.pi * rank / np.maximum(counts[pose], 1)
-    ring = np.where(nodes["kind"] == "grasp", 0.012, 0.0)
+    ring = np.select([nodes["kind"] == "grasp", nodes["kind"] == "catch"], [0.012, 0.006], 0.0)
     xy = p[pose] + ring[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(16, 7.5))

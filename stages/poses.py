@@ -410,6 +410,30 @@ def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 
     return None
 
 
+def held_com(poly: np.ndarray, com_W: np.ndarray, margin: float) -> np.ndarray:
+    """Where a USP hold check puts the CoM ``com_W (..., 3)`` of an object on the table contact ``poly
+    (k, 2)`` (W): ``margin`` m further out, away from the polygon through its boundary point nearest the
+    CoM (outward across that edge when the CoM is inside). A ball that holds the object in USP holds it
+    with the margin SP asks of an object standing alone (``Params.sp_margin``): a USP pose whose CoM is
+    just inside that margin would otherwise be "held" by any ball, with no force at all, and tip over in
+    physics at the least push."""
+    com_W = np.array(com_W, dtype=float)
+    q = com_W[..., :2].reshape(-1, 2)
+    a, b = poly, np.roll(poly, -1, axis=0)
+    ab = b - a
+    rel = q[:, None] - a[None]                                                      # (N, k, 2)
+    t = np.clip(np.einsum("nij,ij->ni", rel, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0.0, 1.0)
+    near = a[None] + t[..., None] * ab[None]
+    d_all = q[:, None] - near
+    i = np.argmin(np.linalg.norm(d_all, axis=2), axis=1)
+    d = d_all[np.arange(len(q)), i]
+    inside = np.array([_margin(poly, x) > 0 for x in q])  # a handful of points
+    d = np.where(inside[:, None], -d, d)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    com_W[..., :2] += margin * d.reshape(com_W[..., :2].shape)
+    return com_W
+
+
 def _margin(p: np.ndarray, q: np.ndarray) -> float:
     """Signed distance of ``q (2,)`` inside the convex hull of ``p (k, 2)`` (< 0 outside)."""
     c = p.mean(axis=0)

@@ -26,7 +26,9 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
-   the on-table support vertices and both balls must hold it. The margin recorded is, in SP, the
+   the on-table support vertices and both balls must hold it, with its CoM the SP margin further out
+   (``poses.held_com``: a USP pose just inside that margin is not held by a ball that does not
+   push). The margin recorded is, in SP, the
    pivot margin on the first support corner (in hull vertex order) that holds, in USP the margin of
    holding with both balls; ``hold_left`` / ``hold_right`` say whether that ball alone holds the
    USP (which a regrasp in USP needs, §5.2.2; a verdict only, its margin is never used). Every pose of a
@@ -323,6 +325,12 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
         uniq, first = np.unique(pose_id[us], return_index=True)
         polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half)
                  for p, f in zip(uniq, first, strict=True)}
+        # Held with the SP margin: the CoM that far further out (poses.held_com), one shift per pose.
+        sp_margin = float(tables["placements"].meta["params"]["sp_margin"])
+        shift = {p: poses.held_com(polys[p], com[us[f]], sp_margin) - com[us[f]] for p, f in
+                 zip(polys, first, strict=True)}
+        com = com.copy()
+        com[us] += np.stack([shift[int(p)] for p in pose_id[us]])
         size = np.array([len(polys[int(p)]) for p in pose_id[us]])
         for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
             _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate)

@@ -945,3 +945,47 @@ def evaluate_threaded(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_norma
     stats = {k: sum(p.stats.get(k, 0) for p in parts) for k in parts[0].stats}
     return StabilityResult(*(np.concatenate([getattr(p, f) for p in parts])
                              for f in ("stable", "margin", "reason", "rank", "decided_by", "alpha")), stats=stats)
+
+
+def least_eef_forces(mass, com_W, table_pts_W, eef_pts_W, eef_normals_W, params: Params = Params()):
+    """The smallest EEF forces that hold the object still on its table contacts (eq. 1–3, one LP).
+
+    The forces ``f_i`` of the EEFs and of the table points, each in its friction pyramid (``mu_eef``,
+    ``mu_table``; an EEF's normal force at most ``f_max``), balance gravity (``Σ f = m g ẑ``, ``Σ r × f
+    = 0`` about the CoM), and the EEFs' total normal force is least. What a ball that holds an object
+    alone in USP (§4.3: two table vertices and one EEF) must push with, fed forward in execution.
+
+    Parameters
+    ----------
+    mass : float (kg)
+    com_W : (3,) CoM (m), W.
+    table_pts_W : (k, 3) where the object touches the table (m), W; the table's normal is +z.
+    eef_pts_W, eef_normals_W : (e, 3) EEF contact points (m) and inward normals, W.
+
+    Returns ``(f_eef (e, 3), f_table (k, 3))`` in N, W (forces on the object), or None when no forces
+    hold it.
+    """
+    com_W = np.asarray(com_W, float)
+    pts = np.concatenate([np.asarray(table_pts_W, float).reshape(-1, 3), np.asarray(eef_pts_W, float).reshape(-1, 3)])
+    k, e = len(pts) - len(np.asarray(eef_pts_W).reshape(-1, 3)), len(np.asarray(eef_pts_W).reshape(-1, 3))
+    n = np.concatenate([np.tile([0.0, 0.0, 1.0], (k, 1)), np.asarray(eef_normals_W, float).reshape(-1, 3)])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t1, t2 = contact_frames(n, pts - com_W)
+    s = params.n_sides
+    mu = np.r_[np.full(k, params.mu_table), np.full(e, params.mu_eef)]
+    C = np.stack([edge_coefficients(m, s) for m in mu])                            # (c, 3, s)
+    edges = np.einsum("cij,cik->cjk", C, np.stack([n, t1, t2], axis=1))           # (c, s, 3) unit-normal edges
+    E = edges.reshape(-1, 3)
+    r = np.repeat(pts - com_W, s, axis=0)
+    A_eq = np.vstack([E.T, np.cross(r, E).T])                                     # (6, c s)
+    b_eq = np.r_[0.0, 0.0, mass * params.g, 0.0, 0.0, 0.0]
+    cost = np.r_[np.zeros(k * s), np.ones(e * s)]                                # the EEFs' normal force
+    A_ub = np.zeros((e, (k + e) * s))
+    for i in range(e):  # each EEF's normal force within the payload bound
+        A_ub[i, (k + i) * s:(k + i + 1) * s] = 1.0
+    res = linprog(cost, A_ub=A_ub, b_ub=np.full(e, params.f_max), A_eq=A_eq, b_eq=b_eq, bounds=(0, None),
+                  method="highs")
+    if res.status != 0:
+        return None
+    f = (res.x.reshape(k + e, s)[:, :, None] * edges).sum(axis=1)
+    return f[k:], f[:k]

@@ -47,9 +47,9 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
      landing and slides out past the far edge of the face in ``slide_time`` (notes: 84° of 90°,
      0.1–0.2 s; a slow slide drags the object); the object then drops the rest of the way, planned
      as a free fall about the current axis (``stages.mpc.integrate_rotation`` with no force);
-   - *hold* (into USP, Fig. 14): the catcher's contact is its contact of the destination grasp (the
-     plan's ``{catcher}_before`` transit ends there); it lowers the object into the USP pose and keeps
-     holding it while the pusher takes its own contact of that grasp (the plan's ``{pusher}_after``).
+   - *hold* (into USP, Fig. 14): the catcher's contact is the plan's catch node's (its
+     ``{catcher}_before`` transit ends there); it lowers the object into the USP pose and keeps
+     holding it alone; the plan's next step (a regrasp) hands the object over to a grasp.
 
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
 normal within ``catch_cone`` of the landing direction), largest lever arm about the axis first (less
@@ -61,11 +61,11 @@ contact must stay ``roll_margin`` inside its face, else the joints are solved by
 which turns the ball with the object about the turning axis (the pusher's always are). Into USP the
 catcher's joints are solved backwards from the plan's final configuration, so the following USP
 regrasp starts exactly where the plan expects; its contact must be able to hold the object through
-the fall, which a contact on a face other than the landing one is not (the lying piano's top face:
-the only USP grasps the sampler gives it, since ``stages.sample`` refuses a ball under the overhang as
-``eef_under_object`` and for its centre below the table top); the MPC is then infeasible after the
-release. ``pivot plan`` runs the same MPC (:func:`tumble_mpc`) on every tumble into USP and refuses
-such a catch, so a plan it accepts does not fail here for it. The forces come from the tumbling MPC
+the fall, which a contact on a face other than the landing one is not (the MPC is then infeasible
+after the release): ``stages.graph`` offers catch nodes on the landing face only, with the ball
+under the overhang beyond the table's edge, and ``pivot plan`` runs the same MPC
+(:func:`tumble_mpc`) on every tumble into USP and refuses a catch it fails, so a plan it accepts
+does not fail here for it. The forces come from the tumbling MPC
 (``stages.mpc.run_tumble_mpc``), one run per segment of the roll, with the pusher switched off at
 its release. After the tumble each arm goes (a planned transit) to the configuration the plan
 assumes at the end of the step: the pusher to the end of its push, the catcher back where it was
@@ -88,7 +88,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from stages import artifacts, mpc, se3, transit
+from stages import artifacts, mpc, poses, se3, stability, transit
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.graph import Params as GraphParams
@@ -489,6 +489,33 @@ def _other(arm: str) -> str:
     return "right" if arm == "left" else "left"
 
 
+#: Time (s) over which a holding ball's force is eased in and out around the other ball's transit.
+HOLD_RAMP = 0.3
+
+
+def hold_force(env: _Env, X: np.ndarray, contact: int) -> np.ndarray | None:
+    """The least force ``(3,)`` (N, W) with which one ball on ``contact`` holds the object at ``X`` still
+    on its table contact (``poses.table_support``; ``stability.least_eef_forces`` with the MPC's
+    reduced friction, else the scene's), or None when it cannot.
+
+    It holds the object with the SP margin (``poses.held_com``): a USP pose may have its CoM just
+    inside the table contact, where the least force would be nil and physics tips it.
+    """
+    model, scene = env.model, env.scene
+    g = int(np.argmax(model.normals @ (X[:3, :3].T @ np.array([0.0, 0.0, -1.0]))))  # the face it stands on
+    poly = poses.table_support(model, X, g, np.asarray(scene.table.size) / 2)
+    com = poses.held_com(poly, se3.transform_points(X, model.com), env.sp_margin)
+    pts = np.c_[poly, np.zeros(len(poly))]
+    p = se3.transform_points(X, env.p_O[contact])[None]
+    n = -se3.rotate_vectors(X, env.n_O[contact])[None]
+    for mu_e, mu_t in ((env.mp.mu_eef, env.mp.mu_table), (scene.object.friction, scene.table.friction)):
+        out = stability.least_eef_forces(scene.object.mass, com, pts, p, n,
+                                         stability.Params(mu_eef=mu_e, mu_table=mu_t, f_max=env.mp.f_max))
+        if out is not None:
+            return out[0][0]
+    return None
+
+
 # ----------------------------------------------------------------------------------------------------
 # Rolling over an edge
 
@@ -634,13 +661,25 @@ class _Timeline:
         T = max(1, int(round(duration / self.dt)))
         self.add(k, kind, phase, np.broadcast_to(X, (T, 4, 4)), X_start=X_start)
 
-    def move_arm(self, arm: str, path, X, k: int, new_contact: int, phase: str | None = None) -> None:
-        """A transit of ``arm`` along joint waypoints ``path (K, n)``; it then rests on ``new_contact``."""
+    def move_arm(self, arm: str, path, X, k: int, new_contact: int, phase: str | None = None,
+                 f_hold: np.ndarray | None = None) -> None:
+        """A transit of ``arm`` along joint waypoints ``path (K, n)``; it then rests on ``new_contact``.
+
+        ``f_hold (3,)`` (N, W): the force the other ball, alone on the object, holds it with meanwhile
+        (in USP), eased in over ``HOLD_RAMP`` s as this ball leaves its contact and out as it reaches
+        the new one (the two then squeeze it)."""
+        leaves = self.contact[arm] >= 0
         self.contact[arm] = -1
         _, qs = transit.time_parameterize(np.asarray(path, dtype=float), self.v_max[arm], self.acc, dt=self.dt)
         T = len(qs)
+        f = {}
+        if f_hold is not None:
+            t = self.dt * np.arange(T)
+            w = np.minimum(_min_jerk_kernel(t / HOLD_RAMP) if leaves else 1.0,
+                           _min_jerk_kernel((t[-1] - t) / HOLD_RAMP) if new_contact >= 0 else 1.0)
+            f = {_other(arm): np.broadcast_to(w, (T,))[:, None] * np.asarray(f_hold, dtype=float)}
         self.add(k, "transit", phase or arm, np.broadcast_to(X, (T, 4, 4)),
-                 p={arm: self.robot.eef_position(arm, qs)}, q={arm: qs})
+                 p={arm: self.robot.eef_position(arm, qs)}, q={arm: qs}, f=f)
         self.q[arm] = qs[-1]
         self.contact[arm] = new_contact
 
@@ -673,6 +712,7 @@ class _Env:
     inertia: np.ndarray
     mp: mpc.Params
     params: Params
+    sp_margin: float = 0.005  # the analysis' (placements.parquet parameters)
     _collide: object = None
 
     @property
@@ -762,6 +802,9 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     if mode == "hold":  # backwards from the plan's final configuration; it must end on its contact
         q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1, both=not follow)
         q_c = q_c[::-1]
+        # Its first solve, seeded with q_end, moves the posture by ~1e-4 rad; end exactly on q_end, so that
+        # no transit (backing off the contact the ball holds the object by) is needed to get there.
+        q_c[-1] = q_end
     else:
         first = robot.ik(catcher, tgt_c[:1], rng=np.random.default_rng(0))
         if not first.ok[0]:
@@ -840,12 +883,12 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
                                            gp, arms=(pusher,))
     if found is None or c_found != c_p:
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
-    usp = "grasp_to" in step
+    usp = "catcher" in step  # into USP: the plan's catcher holds the object at the end
     before = step.get("transit", {}).get(f"{catcher}_before")
     if not usp and before is not None:  # the plan moves the other arm out of the object's way first
         tl.move_arm(catcher, before, X_from, k, -1)
     q_after = {pusher: q_push[-1], catcher: tl.q[catcher]}
-    if usp:  # the plan moves the catcher onto the destination grasp before the push, the pusher after it
+    if usp:  # the plan moves the catcher to its catching configuration before the push
         q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
         candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
     else:
@@ -931,6 +974,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     tl.q[pusher], tl.q[catcher] = q_p[-1], q_c[-1]
     tl.contact[pusher], tl.contact[catcher] = -1, c
     n_out = len(X_out)
+    f_h = None  # into USP: the catcher's holding force
     if mode == "slide":
         tl.contact[catcher] = -1
         tl.add(k, "tumble", "slide", X_out, X_start=X_from, p={catcher: tgt_out},
@@ -947,8 +991,14 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
                c={catcher: np.zeros(n_out, bool)})
         tl.q[catcher] = q_out[-1]
         tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="settle", X_start=X_from)
-    else:
-        tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
+    else:  # the catcher alone holds the object in USP from now on: from the MPC's last force to the least
+        f_h = hold_force(env, X_to, c)
+        if f_h is None:
+            raise TumbleError("unstable", f"step {k}: the catcher on contact {c} cannot hold the object alone")
+        T_s = max(1, int(round(P.settle / dt)))
+        s_ = _min_jerk_kernel(np.arange(T_s) / max(T_s - 1, 1))[:, None]
+        tl.add(k, "tumble", "settle", np.broadcast_to(X_to, (T_s, 4, 4)), X_start=X_from,
+               f={catcher: (1.0 - s_) * f_mpc[-1, ic] + s_ * f_h})
     # The arms go where the plan has them at the end of the step.
     for arm in (pusher, catcher):
         if np.abs(tl.q[arm] - q_after[arm]).max() < 1e-9:
@@ -960,10 +1010,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
                                    n_goal=se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None)
         if res.status != "ok":
             raise TumbleError(res.status, f"step {k}: the {arm} arm's way back: {res.reason}")
-        tl.move_arm(arm, res.path, X_to, k, tl.contact[arm])
-    if usp and f"{pusher}_after" in step["transit"]:  # the pusher takes its contact of the grasp
-        path = np.asarray(step["transit"][f"{pusher}_after"], dtype=float)
-        tl.move_arm(pusher, path, X_to, k, _contact_at(env, pusher, path[-1], X_to, f"plan step {k}"))
+        tl.move_arm(arm, res.path, X_to, k, tl.contact[arm], f_hold=f_h if usp and arm == pusher else None)
     return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "catcher_ik": ik,
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
@@ -1058,7 +1105,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     dt = mp.dt
     inertia = np.asarray(summ["inertia"])
     env = _Env(scene=scene, robot=robot, model=model, mesh=tables["mesh"], p_O=p_O, n_O=n_O, r=r, inertia=inertia,
-               mp=mp, params=params)
+               mp=mp, params=params, sp_margin=float(tables["placements"].meta["params"]["sp_margin"]))
     tl = _Timeline(robot, r, p_O, n_O, dt, scene.object.mass * mp.g,
                    {a: robot.arm(a).velocity * params.vel_scale for a in ARMS}, params.acc)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
@@ -1071,8 +1118,17 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
         prim = step["primitive"]
         X_from, X_to = pose_of(step, "X_WO_from"), pose_of(step, "X_WO_to")
         if prim == "regrasp":
-            for arm in step.get("arms", []):
-                tl.move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]))
+            for arm in step.get("arms", []):  # in USP one at a time, the other ball holding the object alone
+                f_hold = None
+                if step["support"] == "USP" and tl.contact[_other(arm)] >= 0:
+                    f_hold = hold_force(env, X_from, tl.contact[_other(arm)])
+                    if f_hold is None:
+                        stats.update(status="unstable", failed_primitive=k,
+                                     reason=f"step {k}: the {_other(arm)} ball cannot hold the object alone")
+                        break
+                tl.move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]), f_hold=f_hold)
+            if stats["status"] != "ok":
+                break
             if step.get("arms"):
                 tl.hold(X_from, k, params.hold)
         elif prim == "pivot":

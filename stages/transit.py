@@ -76,8 +76,11 @@ class Params:
     #: Distance (m) the ball backs off its contact along the contact normal before transit, and the
     #: distance off the new contact from which it approaches.
     retreat: float = 0.03
-    #: IK waypoints along a retreat or approach.
+    #: IK waypoints along a retreat or approach; a retreat whose step-to-step IK jumps (a damped
+    #: least-squares step near a joint limit can swing the arm round) is solved again with
+    #: ``retreat_refine`` times as many.
     retreat_steps: int = 3
+    retreat_refine: int = 4
     #: Fraction of each joint's velocity limit used by ``time_parameterize`` (see ``velocity_limits``).
     max_vel_scale: float = 0.5
     #: Joint acceleration limit (rad/s^2) for ``time_parameterize``.
@@ -89,8 +92,9 @@ class Params:
         for name in ("range", "resolution", "time_limit", "max_vel_scale", "max_acc", "dt"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"transit Params.{name} must be positive, got {getattr(self, name)}")
-        if self.retreat <= 0 or self.retreat_steps < 1 or self.max_iterations < 1:
-            raise ValueError("transit Params: retreat > 0, retreat_steps >= 1 and max_iterations >= 1 required")
+        if self.retreat <= 0 or self.retreat_steps < 1 or self.retreat_refine < 1 or self.max_iterations < 1:
+            raise ValueError("transit Params: retreat > 0, retreat_steps >= 1, retreat_refine >= 1 and "
+                             "max_iterations >= 1 required")
 
 
 @dataclass(frozen=True)
@@ -209,16 +213,25 @@ def _leave_contacts(robot, arm: str, qs: list, normals: list, params: Params) ->
         u.append(nw / norm)
     q0 = np.stack([qs[i] for i in idx])
     p0 = robot.eef_position(arm, q0)  # (E, 3)
-    s = params.retreat * np.arange(1, params.retreat_steps + 1) / params.retreat_steps  # (T,)
-    res = robot.ik_trajectory(arm, p0[None] + s[:, None, None] * np.array(u)[None], q0)  # (T, E, ...)
-    for e, i in enumerate(idx):
-        good = res.ok[:, e]
-        if good.all():
-            out[i] = np.concatenate([q0[e][None], res.q[:, e]])
-        else:
+    u = np.array(u)
+    todo = np.arange(len(idx))
+    for steps in (params.retreat_steps, params.retreat_steps * params.retreat_refine):
+        s = params.retreat * np.arange(1, steps + 1) / steps  # (T,)
+        res = robot.ik_trajectory(arm, p0[todo][None] + s[:, None, None] * u[todo][None], q0[todo])  # (T, E', ...)
+        jumped = []
+        for j, e in enumerate(todo.tolist()):
+            good = res.ok[:, j]
+            if good.all():
+                out[idx[e]] = np.concatenate([q0[e][None], res.q[:, j]])
+                continue
             k = int(np.argmin(good))
-            out[i] = (f"{res.reason[k, e]} at {s[k] * 100:.1f} cm off the contact "
-                      f"(error {res.err[k, e] * 1000:.1f} mm)")
+            out[idx[e]] = (f"{res.reason[k, j]} at {s[k] * 100:.1f} cm off the contact "
+                           f"(error {res.err[k, j] * 1000:.1f} mm)")
+            if res.reason[k, j] == "joint_jump":
+                jumped.append(e)
+        todo = np.array(jumped, dtype=np.int64)
+        if not len(todo) or params.retreat_refine <= 1:
+            break
     return out
 
 

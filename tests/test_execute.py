@@ -698,7 +698,7 @@ def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_anal
     assert ex_sp.metrics["fell"] and not ex_sp.metrics["success"]  # measured: it tips 108 deg, over the edge
     step = plan["steps"][0]
     catch = np.flatnonzero(np.asarray(cols_sp["phase"]) == "catch")[-1]
-    step.update(support="USP", grasp_to=-1)
+    step.update(support="USP", catcher="right")
     step["transit"]["right_before"] = [np.asarray(cols_sp["q_right"][catch]).tolist()]
     info, cols, ex = run(plan)
     assert info["mode"] == "hold" and info["catch_contact"] == info_sp["catch_contact"]

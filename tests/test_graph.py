@@ -64,3 +64,31 @@ def test_plan_walks_a_usp_regrasp_backwards_in_the_reverse_order():
     assert plan.movers(edges, 0, 10) == ["right", "left"]
     assert plan.movers(edges, 0, 11) == ["left", "right"]
     assert plan.movers(edges, 1, 12) == ["left"]
+
+
+def _handover(catch_rows, grasp_rows, blocked=()):
+    """Hand-over edges from catches ``(pose, arm, contact)`` to grasps ``(pose, left, right, hold_l, hold_r)``."""
+    gr = _grasps(grasp_rows)
+    G = len(grasp_rows)
+    q = np.zeros((G, 2, 7))
+    q[:, 0, 0] = q[:, 1, 0] = np.arange(G)
+    pose, arm, contact = (np.array(c) for c in zip(*catch_rows, strict=True))
+    C = len(catch_rows)
+    catches = {"node_id": 100 + np.arange(C), "pose_id": pose, "arm": arm, "contact": contact,
+               "status": np.full(C, "ok"), "q": np.full((C, 7), 50.0 + np.arange(C)[:, None])}
+    out = graph.handover_edges(catches, gr, q, np.repeat(np.eye(4)[None], 2, axis=0), _collide(blocked), 0.5)
+    return {(a, b): (st, arm) for a, b, prim, w, st, *_, arm in out}
+
+
+def test_handover_from_a_catch_moves_the_pusher_then_the_catcher_while_the_pusher_holds():
+    # The right ball caught on contact 9 of pose 0. Grasp 0 = (1, 9): its right contact is the catch's,
+    # only the left (the pusher) moves. Grasp 1 = (2, 3): the left takes 2, then the right leaves 9 for 3
+    # while the left alone holds; grasp 2 = (4, 5) cannot (its left ball does not hold alone).
+    grasps = [(0, 1, 9, False, False), (0, 2, 3, True, False), (0, 4, 5, False, True), (1, 6, 7, True, True)]
+    edges = _handover([(0, "right", 9)], grasps)
+    assert edges == {(100, 0): ("ok", "left"), (100, 1): ("ok", "left,right"), (100, 2): ("unstable", "left,right")}
+    # The arms at the pusher's grasp configuration and the catch's (the catch's joints: 50) must be free.
+    assert _handover([(0, "right", 9)], grasps, blocked={(1, 50)})[(100, 1)][0] == "self_collision:left_ball/right_ball"
+    # A left catcher: the right ball is the pusher, and must hold alone before the left one moves.
+    edges = _handover([(0, "left", 1)], grasps)
+    assert edges == {(100, 0): ("ok", "right"), (100, 1): ("unstable", "right,left"), (100, 2): ("ok", "right,left")}
