@@ -31,7 +31,7 @@ has passed while the walk goes on, and the outcomes are then taken in path order
 failing edge is the same as when everything runs in turn. The pivot IK first tries all samples in
 one vectorized solve (``Robot.ik_trajectory(batch=True)``) and falls back to step by step. Ablations (the paper's
 comparisons): ``no_regrasp`` keeps only the first grasp and the final release (the graph MPC gait of
-[3]); when the goal is then out of reach the plan goes to the reachable pose nearest the goal and
+[3]); when the goal is then out of reach the plan goes to the reachable SP pose nearest the goal and
 reports the remaining error, as Table 2 does; ``no_tumble`` and ``no_usp`` drop those edges or nodes.
 """
 
@@ -601,6 +601,8 @@ def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, d
 
     Nearest by ``|Δxy| + r |Δyaw|`` of the CoM (``r`` the object's bounding radius turns the yaw
     into an arc length) among poses on the goal's placement; other faces only when none is reached.
+    Only SP poses count: the plan ends there holding the object, and a USP pose (over the table's
+    edge) is not one it can be left in, so its distance to the goal would mean nothing.
     """
     reach = nx.single_source_dijkstra_path_length(G, start, weight="weight")
     goal_X = _goal_pose(ctx)
@@ -609,6 +611,8 @@ def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, d
     goal_face = int(np.argmax(ctx.model.normals @ (goal_X[:3, :3].T @ np.array([0.0, 0.0, -1.0]))))
     best, best_d = start, np.inf
     for n in sorted(reach):  # every reachable node once
+        if ctx.nodes["support"][n] != "SP":
+            continue
         pose = int(ctx.nodes["pose_id"][n])
         X = ctx.X_WO[pose]
         d = float(np.linalg.norm(se3.transform_points(X, ctx.model.com)[:2] - com_goal[:2]))
