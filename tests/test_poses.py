@@ -169,3 +169,15 @@ def test_the_robots_trunk_is_an_obstacle_for_the_object():
     for X, want in ((X_in, "obstacle"), (X_out, "ok")):
         ps = poses.sample_poses(model, X, g, (4.0, 4.0), trunk_obstacles(robot), poses.Params(max_poses=1))
         assert ps.status[0] == want
+
+
+def test_held_com_moves_the_com_out_across_the_nearest_edge_of_the_table_contact():
+    from stages.poses import held_com
+
+    square = np.array([[0.0, 0.0], [0.2, 0.0], [0.2, 0.2], [0.0, 0.2]])
+    # 3 mm inside the top edge: 5 mm out puts it 2 mm past; past the right edge: 5 mm further out.
+    np.testing.assert_allclose(held_com(square, np.array([0.1, 0.197, 0.3]), 0.005), [0.1, 0.202, 0.3])
+    np.testing.assert_allclose(held_com(square, np.array([[0.25, 0.1, 0.0]]), 0.005), [[0.255, 0.1, 0.0]])
+    # Past a corner: along the diagonal away from it.
+    out = held_com(square, np.array([0.23, 0.24, 0.0]), 0.005)
+    np.testing.assert_allclose(out[:2] - [0.23, 0.24], 0.005 * np.array([0.03, 0.04]) / 0.05, atol=1e-12)

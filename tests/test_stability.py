@@ -457,3 +457,22 @@ def test_threaded_evaluation_equals_the_serial_one():
         b = stability.evaluate_threaded(*args, R_WD=case["R_WD"], min_rows=10)
         for f in ("stable", "margin", "reason", "rank"):
             np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
+def test_least_eef_force_holding_an_overhang_is_the_lever_rule():
+    """A 2 kg box resting on the table over x in [-0.3, 0] (the table's edge at x = 0), its CoM 5 cm past
+    the edge: a frictionless ball pressing down on its top at x = -0.2 must carry m g 0.05 / 0.2 (torques
+    about the edge), the edge the rest; a ball pressing down past the edge cannot hold it."""
+    m, g = 2.0, 9.81
+    com = np.array([0.05, 0.0, 0.1])
+    table = np.array([[0.0, -0.1, 0.0], [0.0, 0.1, 0.0], [-0.3, -0.1, 0.0], [-0.3, 0.1, 0.0]])
+    prm = stability.Params(mu_eef=1e-9, mu_table=0.5, f_max=50.0)
+    f, f_table = stability.least_eef_forces(m, com, table, np.array([[-0.2, 0.0, 0.2]]), np.array([[0, 0, -1.0]]),
+                                            prm)
+    np.testing.assert_allclose(f[0], [0.0, 0.0, -m * g * 0.05 / 0.2], atol=1e-6)
+    np.testing.assert_allclose(f_table.sum(axis=0) + f[0], [0.0, 0.0, m * g], atol=1e-6)
+    assert stability.least_eef_forces(m, com, table, np.array([[0.1, 0.0, 0.2]]), np.array([[0, 0, -1.0]]),
+                                      prm) is None
+    # More than the payload bound: not held either (the ball would have to carry m g 0.05 / 0.001).
+    assert stability.least_eef_forces(m, com, table, np.array([[-0.001, 0.0, 0.2]]), np.array([[0, 0, -1.0]]),
+                                      prm) is None
