@@ -765,3 +765,15 @@ def test_usp_regrasp_loads_the_holding_ball_while_the_other_still_touches(pivot_
     ramp = f_l < 5.0 - 1e-9
     assert ramp.any() and np.all(touch_r[ramp])  # eased in and out only while it touches
     assert f_l[0] < 1.0 and f_l[-1] < 1.0
+
+
+def test_off_the_table_allows_the_tracking_error_at_the_edge():
+    """A CoM 0.4 mm past the table's edge while the plan's is 0.2 mm inside it (a catch at a USP pose
+    whose CoM lies on the edge) has not left the table; 5 mm past with the plan's 3 cm inside has; a
+    CoM beyond the edge where the plan's is too (held overhanging) only at fall_distance from it."""
+    scene = load_scene(REPO / "data" / "scenes" / "exp3_obstacle.json")  # a 0.6 x 0.7 m table
+    assert scene.table.size == (0.6, 0.7) or list(scene.table.size) == [0.6, 0.7]
+    com = np.array([[0.0, -0.3504, 0.1], [0.0, -0.355, 0.1], [0.0, -0.40, 0.1], [0.0, -0.45, 0.1]])
+    plan = np.array([[0.0, -0.3498, 0.1], [0.0, -0.32, 0.1], [0.0, -0.39, 0.1], [0.0, -0.39, 0.1]])
+    err = np.linalg.norm(com - plan, axis=1)
+    assert execute.off_the_table(scene, com, plan, err, 0.05, 0.01).tolist() == [False, True, False, True]
