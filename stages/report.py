@@ -24,8 +24,8 @@ PAPER = {
                   "ends 12.5 cm short",
     "exp2_rotate": "Exp. 2 (§6.4, Fig. 17): a -90° turn about z with regrasps onto other faces",
     "exp3_obstacle": "Exp. 3 (§6.5, Fig. 18): a narrow table: a tumble over the table's edge into USP onto a "
-                     "catching ball, the hand-over (a regrasp in USP), a pivot back into SP; the landing is USP only "
-                     "by the SP margin (tests/test_experiments.py)",
+                     "catching ball, the hand-over and a second regrasp in USP, a pivot back into SP; the landing's "
+                     "CoM lies on the table's edge (tests/test_experiments.py)",
     "default": "Simulation (§6.2, Fig. 15): move the piano forward",
 }
 
