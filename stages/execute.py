@@ -207,8 +207,9 @@ class Params:
         refreshes. Gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
     fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
-    fall_distance : ... or when its CoM is off the table where the plan's is not, or this far (m) from
-        the plan's overhanging one (USP).
+    fall_distance : ... or when its CoM is off the table where the plan's is more than ``success_pos``
+        inside its edge, or this far (m) from the plan's overhanging one (USP) or on the edge
+        (:func:`off_the_table`).
     success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``.
     seed : seed of the perturbations (``randomize``).
     randomize : perturb friction by +-friction_jitter (relative), the CoM by +-com_jitter (m per
@@ -1232,6 +1233,18 @@ def _render(cid, params: Params) -> np.ndarray:
     return np.asarray(img, dtype=np.uint8).reshape(params.height, params.width, 4)[:, :, :3].copy()
 
 
+def off_the_table(scene, com, com_plan, com_error, fall_distance: float, edge_band: float) -> np.ndarray:
+    """Rows ``(T,)`` where the object has left the table: its CoM ``com (T, 3)`` beyond the table's edge
+    where the plan's ``com_plan`` lies on the table more than ``edge_band`` (m) inside it, or beyond it
+    and ``fall_distance`` from the plan's (``com_error (T,)``; in USP the plan itself holds the CoM
+    overhanging, held by a ball, and a plan within ``edge_band`` of the edge, a catch or a pivot at a USP
+    pose whose CoM lies on the edge, is judged the same way: tracking it, the CoM crosses the edge by
+    a fraction of a millimetre without falling), or below the top."""
+    err = np.asarray(com_error)
+    return (~scene.on_table(com) & (scene.on_table(com_plan, margin=edge_band) | (err > fall_distance))) \
+        | (com[:, 2] < 0.0)
+
+
 def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collisions) -> dict:
     """The deterministic metrics of :func:`simulate` from the log and the collisions seen."""
     X_end = se3.matrix_from_columns({c: log[c][-1:] for c in se3.POSE_COLUMNS})[0]
@@ -1241,11 +1254,8 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
     X_all = se3.matrix_from_columns({c: log[c] for c in se3.POSE_COLUMNS})
     com_all = se3.transform_points(X_all, com_O)
     tilt = float(np.degrees(log["tilt_error"].max()))
-    # Off the table: the CoM beyond its edge where the plan's is not (in USP the plan itself holds it
-    # overhanging, held by a ball: then only when it is also fall_distance from the plan's), or below it.
     com_plan = se3.transform_points(plan.X_WO, com_O)
-    off_table = (~scene.on_table(com_all) & (scene.on_table(com_plan) | (log["com_error"] > params.fall_distance))) \
-        | (com_all[:, 2] < 0.0)
+    off_table = off_the_table(scene, com_all, com_plan, log["com_error"], params.fall_distance, params.success_pos)
     fell_reason = ""
     if tilt > params.fall_tilt_deg:
         fell_reason = f"tilted {tilt:.1f} deg from the plan"

@@ -666,22 +666,28 @@ class _Timeline:
         """A transit of ``arm`` along joint waypoints ``path (K, n)``; it then rests on ``new_contact``.
 
         ``f_hold (3,)`` (N, W): the force the other ball, alone on the object, holds it with meanwhile
-        (in USP), eased in over ``HOLD_RAMP`` s as this ball leaves its contact and out as it reaches
-        the new one (the two then squeeze it)."""
+        (in USP). It is eased in over ``HOLD_RAMP`` s while this ball still touches its contact, held in
+        full along the whole transit, and eased out over ``HOLD_RAMP`` s once this ball touches the new
+        one (the two then squeeze it): the object is never left with neither ball loaded, as it was when
+        the ramps ran during the transit itself (the leaving ball is off at once, the arriving one only
+        touches at the end)."""
         leaves = self.contact[arm] >= 0
+        holder = _other(arm)
+        fh = None if f_hold is None else np.asarray(f_hold, dtype=float)
+        n_r = max(1, int(round(HOLD_RAMP / self.dt)))
+        ramp = _min_jerk_kernel(np.arange(1, n_r + 1) / n_r)[:, None]
+        if fh is not None and leaves:  # load the holder; this ball stays on its contact meanwhile
+            self.add(k, "transit", phase or arm, np.broadcast_to(X, (n_r, 4, 4)), f={holder: ramp * fh})
         self.contact[arm] = -1
         _, qs = transit.time_parameterize(np.asarray(path, dtype=float), self.v_max[arm], self.acc, dt=self.dt)
         T = len(qs)
-        f = {}
-        if f_hold is not None:
-            t = self.dt * np.arange(T)
-            w = np.minimum(_min_jerk_kernel(t / HOLD_RAMP) if leaves else 1.0,
-                           _min_jerk_kernel((t[-1] - t) / HOLD_RAMP) if new_contact >= 0 else 1.0)
-            f = {_other(arm): np.broadcast_to(w, (T,))[:, None] * np.asarray(f_hold, dtype=float)}
+        f = {} if fh is None else {holder: np.broadcast_to(fh, (T, 3))}
         self.add(k, "transit", phase or arm, np.broadcast_to(X, (T, 4, 4)),
                  p={arm: self.robot.eef_position(arm, qs)}, q={arm: qs}, f=f)
         self.q[arm] = qs[-1]
         self.contact[arm] = new_contact
+        if fh is not None and new_contact >= 0:  # unload the holder, this ball on its new contact
+            self.add(k, "transit", phase or arm, np.broadcast_to(X, (n_r, 4, 4)), f={holder: ramp[::-1] * fh})
 
     def arrays(self) -> dict:
         """The rows so far as arrays (:data:`COLUMNS`), or {} when there are none."""

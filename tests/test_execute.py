@@ -737,3 +737,43 @@ def test_exp1_reach_succeeds_in_physics_with_randomized_friction_com_and_inertia
     assert m["success"], {k: m[k] for k in ("final_position_error", "final_yaw_error_deg", "fell", "collision_times")}
     assert m["max_joint_error"] < 0.3  # rad: the arms stay near their planned joints (was 1.15 near the wrist
     #                                    singularity with the 6-D task)
+
+
+def test_usp_regrasp_loads_the_holding_ball_while_the_other_still_touches(pivot_case):
+    """A ball that leaves its contact in USP, the other holding the object alone (trajectory.move_arm
+    with ``f_hold``): the holder's force is eased in while the leaving ball is still on its contact,
+    held in full for the whole transit, and eased out only once the moving ball touches its new contact;
+    no row has the object with neither ball touching and loaded."""
+    from stages import trajectory
+
+    c = pivot_case
+    robot, r = c["robot"], c["scene"].robot.ball_radius
+    p_O = np.stack([c["p_c"][0], c["p_c"][1]])
+    n_O = np.stack([c["n_O"][0], c["n_O"][1]])
+    tl = trajectory._Timeline(robot, r, p_O, n_O, 0.02, c["mass"] * 9.81,
+                              {a: robot.arm(a).velocity for a in ("left", "right")}, 2.0)
+    tl.contact = {"left": 0, "right": 1}
+    q = robot.arm("right").q_rest
+    tl.q["right"] = q
+    f_hold = np.array([0.0, 3.0, 4.0])
+    tl.move_arm("right", np.stack([q, q + 0.2, q]), c["X0"], 0, 1, f_hold=f_hold)
+    rows = tl.arrays()
+    f_l = np.linalg.norm(rows["f_l"], axis=1)
+    touch_r = rows["c_r"]
+    assert touch_r[0] and touch_r[-1] and not touch_r.all()
+    assert np.allclose(f_l[~touch_r], 5.0)  # in full whenever the right ball is off
+    ramp = f_l < 5.0 - 1e-9
+    assert ramp.any() and np.all(touch_r[ramp])  # eased in and out only while it touches
+    assert f_l[0] < 1.0 and f_l[-1] < 1.0
+
+
+def test_off_the_table_allows_the_tracking_error_at_the_edge():
+    """A CoM 0.4 mm past the table's edge while the plan's is 0.2 mm inside it (a catch at a USP pose
+    whose CoM lies on the edge) has not left the table; 5 mm past with the plan's 3 cm inside has; a
+    CoM beyond the edge where the plan's is too (held overhanging) only at fall_distance from it."""
+    scene = load_scene(REPO / "data" / "scenes" / "exp3_obstacle.json")  # a 0.6 x 0.7 m table
+    assert scene.table.size == (0.6, 0.7) or list(scene.table.size) == [0.6, 0.7]
+    com = np.array([[0.0, -0.3504, 0.1], [0.0, -0.355, 0.1], [0.0, -0.40, 0.1], [0.0, -0.45, 0.1]])
+    plan = np.array([[0.0, -0.3498, 0.1], [0.0, -0.32, 0.1], [0.0, -0.39, 0.1], [0.0, -0.39, 0.1]])
+    err = np.linalg.norm(com - plan, axis=1)
+    assert execute.off_the_table(scene, com, plan, err, 0.05, 0.01).tolist() == [False, True, False, True]
