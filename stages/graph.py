@@ -71,6 +71,9 @@ class Params:
     #: within ``catch_cone`` of straight down after the landing), its ball at least ``catch_clearance``
     #: beyond the table's edge; ``catch_candidates`` per tumble and arm, largest lever first.
     catch_cone: float = np.radians(30.0)
+    #: ... and it holds the landed object alone with this fraction of the friction, as the sampler's
+    #: ``hold_*`` (``stages.sample.Params.hold_friction_safety``).
+    hold_friction_safety: float = 0.8
     catch_clearance: float = 0.01
     catch_candidates: int = 8
     ik_tol: float = 1e-3
@@ -389,8 +392,8 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
     the CoM along it) first. A candidate (pose, arm, contact) is checked once: IK of the ball centre
     at the landing, no collision with the other arm at rest (only the catching ball touches the
     object) and the object held by that ball alone on its table contact (``poses.table_support``; the
-    stability LP with the scene's friction and force bound and the CoM moved out by the SP margin,
-    ``poses.held_com``, as ``stages.sample`` checks ``hold_*``).
+    stability LP with ``hold_friction_safety`` of the scene's friction, its force bound and the CoM
+    moved out by the SP margin, ``poses.held_com``, as ``stages.sample`` checks ``hold_*``).
 
     Returns columns ``pose_id, arm, contact, status`` (``ok`` or the first failure) and ``q (N, n)``.
     """
@@ -454,7 +457,8 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
                                  se3.transform_points(X[live], p_O[contact[live]])[:, None],
                                  -se3.rotate_vectors(X[live], n_O[contact[live]])[:, None], None,
                                  float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                 stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
+                                 stability.Params(mu_eef=params.hold_friction_safety * scene.object.friction,
+                                                  mu_table=params.hold_friction_safety * scene.table.friction,
                                                   f_max=scene.robot.max_eef_force), compute_margin=False)
         status[live[~res.stable]] = "unstable"
     return {"pose_id": pose, "arm": arm, "contact": contact, "status": status.astype(str), "q": q}

@@ -72,6 +72,10 @@ class Params:
     #: as three rounds from random postures around the rest posture did (7138 vs 7239 grasps).
     collision_retries: int = 1
     retry_jitter: float = 0.3
+    #: A ball alone holds a USP pose (``hold_*``) with this fraction of the friction coefficients, the
+    #: one the MPC plans with (``stages.plan.Params.friction_safety``): a hold at the friction limit
+    #: tips in physics at the least disturbance (Exp. 3's hand-over, seed 1).
+    hold_friction_safety: float = 0.8
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
@@ -213,7 +217,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     # Stability.
     live = np.flatnonzero(reason == "")
     margins = _stability(scene, model, tables, ps, pose_idx[live], pair_idx[live], X[live], p_l[live], p_r[live],
-                         n_l[live], n_r[live], params.corner_cluster, params.threads)
+                         n_l[live], n_r[live], params.corner_cluster, params.threads, params.hold_friction_safety)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -244,7 +248,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
 
 
 def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float,
-               threads: int = 1) -> dict:
+               threads: int = 1, hold_friction_safety: float = 1.0) -> dict:
     """Stability verdicts and margins of grasp candidates (see the module docstring, step 6).
 
     The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
@@ -263,6 +267,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
 
     prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
                            f_max=scene.robot.max_eef_force)
+    prm_hold = stability.Params(mu_eef=hold_friction_safety * scene.object.friction,
+                                mu_table=hold_friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
     corners = poses.pivot_corners(model, corner_cluster)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,
@@ -333,13 +339,14 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
         com[us] += np.stack([shift[int(p)] for p in pose_id[us]])
         size = np.array([len(polys[int(p)]) for p in pose_id[us]])
         for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
-            _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate)
+            _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
+                       evaluate)
     return out
 
 
-def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, evaluate) -> None:
-    """USP candidates ``us`` whose table contact has ``kmax`` corners: hold with both balls, with the
-    left alone, with the right alone (one batch of three copies), and the both-ball margin."""
+def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold, evaluate) -> None:
+    """USP candidates ``us`` whose table contact has ``kmax`` corners: hold with both balls (``prm``),
+    with the left alone and with the right alone (``prm_hold``), and the both-ball margin."""
     upose, inv = np.unique(pose_id[us], return_inverse=True)
     V = np.zeros((len(us), kmax, 3))
     V[:, :, :2] = np.stack([polys[int(p)] for p in upose])[inv.reshape(-1)]  # one polygon per pose
@@ -347,19 +354,21 @@ def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm
     em = np.ones((3, n, 2), bool)
     em[1, :, 1] = em[2, :, 0] = False
 
-    def three(a):
-        return np.concatenate([a, a, a])
+    def two(a):
+        return np.concatenate([a, a])
 
-    res = evaluate(mass, three(com[us]), three(V), None, three(eef_p[us]), three(eef_n[us]),
-                   em.reshape(3 * n, 2), L, prm, R_WD=three(X[us, :3, :3]), compute_margin=False)
-    stable = res.stable.reshape(3, n)
+    res = evaluate(mass, com[us], V, None, eef_p[us], eef_n[us], None, L, prm, R_WD=X[us, :3, :3],
+                   compute_margin=False)
+    alone = evaluate(mass, two(com[us]), two(V), None, two(eef_p[us]), two(eef_n[us]), em[1:].reshape(2 * n, 2), L,
+                     prm_hold, R_WD=two(X[us, :3, :3]), compute_margin=False)
+    stable = np.concatenate([res.stable, alone.stable]).reshape(3, n)
     out["stable"][us] = stable[0]
     out["hold_left"][us], out["hold_right"][us] = stable[1], stable[2]
     # The margin of holding with both (not pivoting: holding is what a USP grasp must do first); a
     # ball alone is only ever asked whether it holds, so its twelve margin LPs are not solved.
     s0 = us[stable[0]]
     m = evaluate(mass, com[s0], V[stable[0]], None, eef_p[s0], eef_n[s0], None, L, prm,
-                 R_WD=X[s0, :3, :3], alpha=res.alpha[:n][stable[0]])
+                 R_WD=X[s0, :3, :3], alpha=res.alpha[stable[0]])
     out["margin"][s0] = m.margin
 
 

