@@ -31,7 +31,8 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    push). The margin recorded is, in SP, the
    pivot margin on the first support corner (in hull vertex order) that holds, in USP the margin of
    holding with both balls; ``hold_left`` / ``hold_right`` say whether that ball alone holds the
-   USP (which a regrasp in USP needs, §5.2.2; a verdict only, its margin is never used). Every pose of a
+   USP with ``Params.hold_friction_safety`` of the friction (which a regrasp in USP needs, §5.2.2; a
+   verdict only, its margin is never used). Every pose of a
    placement is its resting pose turned about the vertical and shifted, and the stability LP is
    invariant under that motion, so the pivot tests are solved once per (placement, pair, corner)
    and shared by all poses of the placement.
@@ -335,7 +336,6 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
         sp_margin = float(tables["placements"].meta["params"]["sp_margin"])
         shift = {p: poses.held_com(polys[p], com[us[f]], sp_margin) - com[us[f]] for p, f in
                  zip(polys, first, strict=True)}
-        com = com.copy()
         com[us] += np.stack([shift[int(p)] for p in pose_id[us]])
         size = np.array([len(polys[int(p)]) for p in pose_id[us]])
         for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
