@@ -81,7 +81,8 @@ def mpc(
         stats = trajectory.run(scene, b / "analysis", plan_file or b / "plan.json", out, params,
                                producer=f"mpc {scene}")
     if stats["status"] != "ok":
-        typer.echo(f"pivot: MPC infeasible on primitive {stats['failed_primitive']} of {scene.stem}", err=True)
+        why = f": {stats['reason']}" if stats.get("reason") else ""
+        typer.echo(f"pivot: {stats['status']} on primitive {stats['failed_primitive']} of {scene.stem}{why}", err=True)
         raise typer.Exit(code=1)
     info(f"{scene.stem}: {stats['primitives']} primitives, {stats['steps']} steps, {stats['duration']:.1f} s of "
          f"motion, MPC tracking error <= {stats['mpc_max_error']:.2e} rad -> {out}")

@@ -71,11 +71,11 @@ class Params:
     #: within ``catch_cone`` of straight down after the landing), its ball at least ``catch_clearance``
     #: beyond the table's edge; ``catch_candidates`` per tumble and arm, largest lever first.
     catch_cone: float = np.radians(30.0)
+    catch_clearance: float = 0.01
+    catch_candidates: int = 8
     #: ... and it holds the landed object alone with this fraction of the friction, as the sampler's
     #: ``hold_*`` (``stages.sample.Params.hold_friction_safety``).
     hold_friction_safety: float = 0.8
-    catch_clearance: float = 0.01
-    catch_candidates: int = 8
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
@@ -475,7 +475,6 @@ def handover_edges(catches: dict, grasps, q_g, X_WO, collide, weight: float) -> 
     """
     ok = np.flatnonzero(catches["status"] == "ok")
     by_pose: dict[int, np.ndarray] = {}
-    out = []
     rows = []  # (catch row, grasp)
     for i in ok.tolist():  # a few hundred catches, each with the grasps of its pose
         pose = int(catches["pose_id"][i])
@@ -483,7 +482,7 @@ def handover_edges(catches: dict, grasps, q_g, X_WO, collide, weight: float) -> 
             by_pose[pose] = np.flatnonzero(grasps["pose_id"] == pose)
         rows += [(i, g) for g in by_pose[pose].tolist()]
     if not rows:
-        return out
+        return []
     ci, g = np.array(rows, dtype=np.int64).T
     catcher = catches["arm"][ci]
     k = (catcher == "right").astype(int)  # the catcher's index, 1 - k the pusher's
@@ -494,7 +493,7 @@ def handover_edges(catches: dict, grasps, q_g, X_WO, collide, weight: float) -> 
     q_c = catches["q"][ci]
     ql = np.where((k == 0)[:, None], q_c, q_g[g, 0])
     qr = np.where((k == 1)[:, None], q_c, q_g[g, 1])
-    free, why = collide(ql, qr, X_WO[catches["pose_id"][ci]], np.ones((len(ci), 2), bool))
+    _, why = collide(ql, qr, X_WO[catches["pose_id"][ci]], np.ones((len(ci), 2), bool))
     status = np.where(~same & ~pusher_holds, "unstable", why)
     pusher = np.where(k == 0, "right", "left")
     movers = np.where(same, pusher, np.char.add(np.char.add(pusher, ","), catcher.astype(str)))

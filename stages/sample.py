@@ -28,14 +28,13 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
    the on-table support vertices and both balls must hold it, with its CoM the SP margin further out
    (``poses.held_com``: a USP pose just inside that margin is not held by a ball that does not
-   push). The margin recorded is, in SP, the
-   pivot margin on the first support corner (in hull vertex order) that holds, in USP the margin of
-   holding with both balls; ``hold_left`` / ``hold_right`` say whether that ball alone holds the
-   USP with ``Params.hold_friction_safety`` of the friction (which a regrasp in USP needs, §5.2.2; a
-   verdict only, its margin is never used). Every pose of a
-   placement is its resting pose turned about the vertical and shifted, and the stability LP is
-   invariant under that motion, so the pivot tests are solved once per (placement, pair, corner)
-   and shared by all poses of the placement.
+   push). The margin recorded is, in SP, the pivot margin on the first support corner (in hull
+   vertex order) that holds, in USP the margin of holding with both balls; ``hold_left`` /
+   ``hold_right`` say whether that ball alone holds the USP with ``Params.hold_friction_safety`` of
+   the friction (which a regrasp in USP needs, §5.2.2; a verdict only, its margin is never used).
+   Every pose of a placement is its resting pose turned about the vertical and shifted, and the
+   stability LP is invariant under that motion, so the pivot tests are solved once per (placement,
+   pair, corner) and shared by all poses of the placement.
 """
 
 from __future__ import annotations
