@@ -1123,23 +1123,26 @@ class CollisionFn:
         self.cores = [_core_balls(a) for a in self.arms]
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
-                 touching: np.ndarray | None = None, *, blame: bool = False) -> tuple[np.ndarray, ...]:
+                 touching: np.ndarray | None = None, *, blame: bool = False,
+                 margin: float | None = None) -> tuple[np.ndarray, ...]:
+        """``margin`` (m) replaces the checker's own for this call."""
         N = len(q_left)
+        mg = self.margin if margin is None else float(margin)
         chunks = min(self.threads, N // 1024)
         if chunks <= 1:
-            out = self._check(q_left, q_right, X_WO, touching)
+            out = self._check(q_left, q_right, X_WO, touching, mg)
         else:
             def part(rows):
                 return self._check(q_left[rows], q_right[rows], None if X_WO is None else X_WO[rows],
-                                   None if touching is None else touching[rows])
+                                   None if touching is None else touching[rows], mg)
 
             with ThreadPoolExecutor(chunks) as pool:
                 parts = list(pool.map(part, np.array_split(np.arange(N), chunks)))
             out = tuple(np.concatenate(x) for x in zip(*parts, strict=True))
         return out if blame else out[:2]
 
-    def _check(self, q_left, q_right, X_WO, touching) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        arms, mg = self.arms, self.margin
+    def _check(self, q_left, q_right, X_WO, touching, mg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        arms = self.arms
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
         if X_WO is not None:

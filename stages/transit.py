@@ -17,9 +17,10 @@ Collision rules. Every state is tested with the batched checker of ``stages.robo
 (``make_collision_fn``) against the table, obstacles, the trunk, the still arm and the object at its
 fixed pose ``X_WO``. The moving ball is exempt from the object test only on the retreat and approach
 segments (it starts and ends in contact and moves along the normal there); the retreat and approach
-configurations themselves, 3 cm off the surface, and everything between them are tested in full. The
-still arm's ball is always exempt from the object test: it does not move, and whether it may touch the
-object is the grasp's business, not the transit's.
+configurations themselves, 3 cm off the surface, and everything between them are tested in full,
+between them with the checker's margin raised to ``Params.clearance`` (kept only when the retreat and
+approach configurations pass it). The still arm's ball is always exempt from the object test: it does
+not move, and whether it may touch the object is the grasp's business, not the transit's.
 
 Motion checking. A straight joint-space segment is checked at states spaced so that no point of the
 moving arm moves more than ``Params.resolution`` (m) between two of them: with ``L_j`` a bound on the
@@ -73,6 +74,12 @@ class Params:
     simplify: bool = True
     #: Seed of OMPL's random number generator.
     seed: int = 0
+    #: Clearance (m) the arm keeps from everything between the retreat and the approach (the
+    #: collision checker's margin there): a path that grazes the object at the check's resolution
+    #: touches it in physics, where the object lies a few mm from its planned pose (Exp. 3's
+    #: hand-over: the left stick brushed the piano's top edge). The transit keeps none when the
+    #: retreat's or the approach's end lies closer than that.
+    clearance: float = 0.005
     #: Distance (m) the ball backs off its contact along the contact normal before transit, and the
     #: distance off the new contact from which it approaches.
     retreat: float = 0.03
@@ -169,8 +176,10 @@ class _Checker:
     ``check(Q (N, n), ball_exempt (N,) bool) -> (ok (N,), reason (N,))``; counts calls and states.
     """
 
-    def __init__(self, collide, moving: int, q_other: np.ndarray, X_WO: np.ndarray | None):
+    def __init__(self, collide, moving: int, q_other: np.ndarray, X_WO: np.ndarray | None,
+                 margin: float | None = None):
         self.collide, self.moving, self.q_other, self.X_WO = collide, moving, q_other, X_WO
+        self.margin = margin
         self.calls = 0
         self.states = 0
         self.reasons: Counter = Counter()
@@ -185,7 +194,8 @@ class _Checker:
         touching = np.ones((N, 2), bool)  # the still arm's ball is always exempt (module docstring)
         touching[:, self.moving] = np.broadcast_to(ball_exempt, (N,))
         X = None if self.X_WO is None else np.broadcast_to(self.X_WO, (N, 4, 4))
-        ok, reason = self.collide(q_left, q_right, X, touching)
+        ok, reason = (self.collide(q_left, q_right, X, touching) if self.margin is None else
+                      self.collide(q_left, q_right, X, touching, margin=self.margin))
         self.calls += 1
         self.states += N
         self.reasons.update(reason[~ok].tolist())
@@ -277,11 +287,13 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
         if X_WO.shape != (4, 4):
             raise ValueError(f"X_WO must be (4, 4), got {X_WO.shape}")
     check = _Checker(collide, ("left", "right").index(arm), qo, X_WO)
+    wide = _Checker(collide, ("left", "right").index(arm), qo, X_WO, params.clearance)
     w = lever_arms(a)
     stats = {"planner": "", "iterations": 0}
 
     def done(**extra):
-        stats.update(checks=check.calls, states=check.states, time=time.perf_counter() - t0, **extra)
+        stats.update(checks=check.calls + wide.calls, states=check.states + wide.states,
+                     time=time.perf_counter() - t0, **extra)
         return stats
 
     # Retreat and approach by IK.
@@ -315,21 +327,22 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
         if len(bad):
             return _fail(status, f"{what}: {reason[e - len(states) + bad[0]]}", n, done())
 
-    if ok[ends[-2]:].all():
+    mid = wide if params.clearance > 0 and wide(np.stack([R[-1], A[0]]))[0].all() else check
+    if ok[ends[-2]:].all() and (mid is check or mid(d_states)[0].all()):
         middle = np.stack([R[-1], A[0]])
         stats["planner"] = "direct"
     else:
         stats["planner"] = "rrt_connect"
-        middle, info = _rrt_connect(check, a.lower, a.upper, w, R[-1], A[0], params)
+        middle, info = _rrt_connect(mid, a.lower, a.upper, w, R[-1], A[0], params)
         stats.update(info)
         if middle is None:
-            common = ", ".join(f"{k} ({v})" for k, v in check.reasons.most_common(3))
+            common = ", ".join(f"{k} ({v})" for k, v in mid.reasons.most_common(3))
             return _fail("no_transit_path", f"RRT-Connect found no path in {info['iterations']} iterations "
                          f"({info['stop']}); most frequent collisions: {common}", n, done())
         if params.simplify:
-            middle = shortcut(middle, check, w, params.resolution)
+            middle = shortcut(middle, mid, w, params.resolution)
         states, seg = densify(middle, w, params.resolution)
-        ok, reason = check(states)
+        ok, reason = mid(states)
         if not ok.all():  # cannot happen with the same checker and resolution; kept as a guard
             k = int(np.argmin(ok))
             return _fail("no_transit_path", f"dense re-check failed on segment {seg[k]}: {reason[k]}", n, done())

@@ -194,6 +194,28 @@ def test_wall_forces_a_collision_free_detour(robot, wall):
     assert ok.all(), set(why[~ok])
 
 
+def test_the_way_between_retreat_and_approach_keeps_the_clearance(robot):
+    # A "thin wall" the checker sees only with a margin: joint 1 of the left arm within 0.05 rad of 0.5.
+    # The states between the ends are tested with Params.clearance, the ends without: with a clearance
+    # the way from joint 1 at 0 to 1 (which must pass 0.5) is blocked, without one it is free; and when
+    # an end itself lies within the clearance the transit keeps none.
+    def collide(q_left, q_right, X_WO, touching, margin=0.0):
+        bad = (margin > 0) & (np.abs(q_left[:, 0] - 0.5) < 0.05)
+        return ~bad, np.where(bad, "env_collision:left_link_1_s/wall", "ok")
+
+    a = robot.arm("left")
+    qs, qg = a.q_rest.copy(), a.q_rest.copy()
+    qs[0], qg[0] = 0.0, 1.0
+    prm = transit.Params(max_iterations=20)
+    assert prm.clearance > 0
+    assert transit.plan_transit(robot, collide, "left", qs, qg, Q_AWAY, None, prm).status == "no_transit_path"
+    res = transit.plan_transit(robot, collide, "left", qs, qg, Q_AWAY, None, replace(prm, clearance=0.0))
+    assert res.status == "ok" and res.stats["planner"] == "direct"
+    qg[0] = 0.52  # the goal inside the margin: no clearance kept
+    res = transit.plan_transit(robot, collide, "left", qs, qg, Q_AWAY, None, prm)
+    assert res.status == "ok" and res.stats["planner"] == "direct"
+
+
 def test_same_seed_gives_the_same_path(robot, wall):
     qs, qg = wall_query(robot, wall)
     prm = transit.Params(seed=3)
