@@ -587,6 +587,19 @@ def _squeeze_weights(weight: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.stack([w, w], axis=1)
 
 
+def _hold_weights(weight: np.ndarray, kind: np.ndarray, f_ball: np.ndarray) -> np.ndarray:
+    """``(T, 2)`` weights of a ball holding the object alone between primitives (``kind`` transit or
+    hold, the other ball off, a planned force ``f_ball (T, 2, 3)`` on it): its target is then moved
+    by the object's drift from the plan measured when the lone hold begins (and held there, so the
+    ball stays stiff against the object tipping further). The planned centre is where the ball
+    touches the planned object; one that has drifted a few mm since (2.8 mm after a tumble into USP)
+    lies beyond the reach of the feed-forward force's impedance offset (``|F| / kp``: 1.1 mm for
+    5.6 N), so the ball never touched and the object tipped as the other ball let go."""
+    between = np.isin(kind, ("transit", "hold"))[:, None]
+    pressing = np.linalg.norm(f_ball, axis=2) > 1e-6
+    return np.where(between & pressing, weight * (1.0 - weight[:, ::-1]), 0.0)
+
+
 def _contact_normals(mesh: trimesh.Trimesh, X_WO: np.ndarray, p_ball: np.ndarray,
                      contact: np.ndarray) -> np.ndarray:
     """Inward unit normals ``(T, 2, 3)`` (W) at the planned contacts, zero out of contact."""
@@ -678,6 +691,8 @@ class _Targets:
     keep: np.ndarray  # (S, 2) weight of the rolling correction: 1 in contact, fading to 0 after
     qdd: np.ndarray  # (S, 2, n) rad/s^2
     compliance: np.ndarray  # (S, 2) 1: impedance at the ball (contact), 0: joint tracking (free motion)
+    follow: np.ndarray  # (S, 2) weight of the ball's target following the measured object (a lone hold)
+    p_o: np.ndarray  # (S, 3) planned object origin (m, W)
 
 
 def _release_fade(t: np.ndarray, contact: np.ndarray, fade_time: float) -> np.ndarray:
@@ -738,7 +753,9 @@ def _make_targets(plan: Plan, R_plan: np.ndarray, normals: np.ndarray, params: P
                     w=np.stack([_angular_velocity(R[:, a], dt) for a in range(2)], axis=1), f=f, q=q,
                     qd=np.gradient(q, dt, axis=0), R_o=R_o, w_o=_angular_velocity(R_o, dt), n=n,
                     contact=plan.contact[row], keep=keep, qdd=np.gradient(np.gradient(q, dt, axis=0), dt, axis=0),
-                    compliance=lerp(_compliance(plan.t, plan.contact, params.ramp_time)[..., None])[..., 0])
+                    compliance=lerp(_compliance(plan.t, plan.contact, params.ramp_time)[..., None])[..., 0],
+                    follow=lerp(_hold_weights(weight, plan.kind, plan.f_ball)[..., None])[..., 0],
+                    p_o=lerp(plan.X_WO[:, None, :3, 3])[:, 0])
 
 
 def _compliance(t: np.ndarray, contact: np.ndarray, ramp: float) -> np.ndarray:
@@ -1076,6 +1093,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         r_ball, dt, roll = scene.robot.ball_radius, params.dt, params.roll_compensation
         w_o, normals_s, contact_s = tg.w_o.tolist(), tg.n.tolist(), tg.contact.tolist()
         compliance_s = tg.compliance.tolist()
+        follow_s = tg.follow.tolist()
+        drift: list = [None, None]  # per ball: the object's drift from the plan when its lone hold began
         eye_n = np.eye(n_arm)
         for j in range(1, S):
             # Torques for the step from j - 1 to j, from the state at j - 1 and the targets at j.
@@ -1109,6 +1128,18 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ R_o.T)
             elif roll:
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ tg.R_o[j].T)
+            for a in range(2):
+                if follow_s[j][a] <= 0.0:
+                    drift[a] = None
+                    continue
+                if drift[a] is None:  # a lone hold begins: where the object is, against the plan
+                    pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
+                    X_act = se3.make_transform(se3.matrix_from_quat(np.asarray(orn)), np.asarray(pos)) @ X_PO
+                    R_d = X_act[:3, :3] @ tg.R_o[j].T
+                    drift[a] = (R_d, X_act[:3, 3] - R_d @ tg.p_o[j])
+                R_d, p_d = drift[a]
+                x_t = x_t.copy()
+                x_t[a] += follow_s[j][a] * (R_d @ x_t[a] + p_d - x_t[a])
             if nt == 6:
                 e = np.concatenate([x_t - (ls[0][4], ls[1][4]),
                                     (_quat_error(quat_tgt[j][0], ls[0][5]), _quat_error(quat_tgt[j][1], ls[1][5]))],

@@ -223,6 +223,21 @@ def test_squeeze_acts_only_while_both_balls_hold_on_opposed_normals():
     assert np.all(execute._squeeze_weights(w, n) == 0.0)
 
 
+def test_a_ball_follows_the_object_only_while_it_holds_it_alone_between_primitives():
+    t = np.arange(0.0, 3.0, 0.05)
+    contact = np.stack([t < 2.0, (t > 0.5) & (t < 2.5)], axis=1)  # left 0-2 s, right 0.5-2.5 s
+    w = execute._contact_weights(t, contact, 0.3)
+    kind = np.where(t < 1.5, "transit", "pivot")
+    f = np.zeros((len(t), 2, 3))
+    f[:, :, 2] = 5.0
+    h = execute._hold_weights(w, kind, f)
+    assert np.all(h[kind == "pivot"] == 0.0)  # a primitive's contacts track the plan
+    assert np.allclose(h[t < 0.45, 0], w[t < 0.45, 0]) and np.all(h[:, 1][t < 0.5] == 0.0)  # the left alone
+    assert np.allclose(h[(t > 0.9) & (t < 1.45)], 0.0)  # both on the object: neither alone
+    f[:, 0] = 0.0  # a ball that carries no force holds nothing
+    assert np.all(execute._hold_weights(w, kind, f)[:, 0] == 0.0)
+
+
 def test_modal_gains_keep_stiffness_and_damp_critically_below_the_cap():
     m, k, zeta = 4.0, 5000.0, 0.7
     A = np.eye(6) / m  # a free point mass m (and unit rotational inertia scaled alike)
