@@ -73,9 +73,13 @@ class Params:
     catch_cone: float = np.radians(30.0)
     catch_clearance: float = 0.01
     catch_candidates: int = 8
-    #: ... and it holds the landed object alone with this fraction of the friction, as the sampler's
-    #: ``hold_*`` (``stages.sample.Params.hold_friction_safety``).
+    #: ... and it holds the landed object alone with these fractions of the table's and the ball's
+    #: friction, as the sampler's ``hold_*`` (``stages.sample.Params``).
     hold_friction_safety: float = 0.8
+    hold_eef_friction: float = 0.3
+    #: A hand-over's hold (:func:`hold_candidates`): the pusher's ball on a face within ``catch_cone`` of
+    #: straight up, over the table; this many per USP pose, farthest from the CoM first.
+    hold_candidates: int = 8
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
@@ -264,8 +268,14 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     tumble_edges = np.stack([links["edge_v0"][tumbles], links["edge_v1"][tumbles]], axis=1).astype(np.int64)
     found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params)
     into_usp = ps["support"][lb] == "USP"
+    own: dict[tuple, set] = {}  # (landing pose, arm) -> that arm's contacts in the pose's grasps
+    landing = np.isin(grasps["pose_id"], lb[into_usp])
+    for pose, cl, cr in zip(grasps["pose_id"][landing].tolist(), grasps["contact_left"][landing].tolist(),
+                            grasps["contact_right"][landing].tolist(), strict=True):
+        own.setdefault((pose, "left"), set()).add(cl)
+        own.setdefault((pose, "right"), set()).add(cr)
     catches = catch_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], lb[into_usp],
-                               tumble_edges[into_usp], params)
+                               tumble_edges[into_usp], params, own)
     catch_ids = G + len(kept_sp) + np.arange(len(catches["pose_id"]))
     catches["node_id"] = catch_ids
     by_landing: dict[tuple, list] = {}  # (pose, catcher arm) -> catch nodes
@@ -284,12 +294,19 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
                 st = why if why != "ok" else str(catches["status"][n - catch_ids[0]])
                 edges.append((src, n, "tumble", w.tumble, st, -1, e0, e1, pusher))
     edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
+    holds = hold_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], catches, params)
+    holds["node_id"] = catch_ids[-1] + 1 + np.arange(len(holds["pose_id"])) if len(catch_ids) else \
+        G + len(kept_sp) + np.arange(len(holds["pose_id"]))
+    edges += hold_edges(catches, holds, grasps, q_g, X_WO, collide, w.regrasp)
     t3 = time.perf_counter()
 
-    nc_ = len(catch_ids)
-    nodes = {"node_id": np.r_[nodes["node_id"], catch_ids],
-             "kind": np.r_[nodes["kind"], np.full(nc_, "catch")],
-             "pose_id": np.r_[nodes["pose_id"], catches["pose_id"]].astype(np.int64),
+    one = {k: np.concatenate([catches[k], holds[k]]) for k in ("node_id", "pose_id", "arm", "contact", "status")}
+    one["q"] = np.concatenate([catches["q"], holds["q"]])
+    one["kind"] = np.r_[np.full(len(catch_ids), "catch"), np.full(len(holds["pose_id"]), "hold")]
+    nc_ = len(one["node_id"])
+    nodes = {"node_id": np.r_[nodes["node_id"], one["node_id"]],
+             "kind": np.r_[nodes["kind"], one["kind"]],
+             "pose_id": np.r_[nodes["pose_id"], one["pose_id"]].astype(np.int64),
              "grasp_id": np.r_[nodes["grasp_id"], -np.ones(nc_, np.int64)],
              "support": np.r_[nodes["support"], np.full(nc_, "USP")].astype(str)}
     E = len(edges)
@@ -302,7 +319,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
         "weight": np.array(cols[3], dtype=float),
         "status": np.array(cols[4], dtype=str),
         "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool) | np.isin(np.array(cols[0], np.int64),
-                                                                                      catch_ids),
+                                                                                      one["node_id"]),
         "vertex": np.array(cols[5], dtype=np.int64),
         "edge_v0": np.array(cols[6], dtype=np.int64),
         "edge_v1": np.array(cols[7], dtype=np.int64),
@@ -311,14 +328,15 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     st, ct = np.unique(edge_cols["status"], return_counts=True)
     summary = {
         "nodes": {"grasp": int(G), "free": int(len(kept_sp)), "catch": int(np.sum(catches["status"] == "ok")),
-                  "catch_rejected": int(np.sum(catches["status"] != "ok"))},
+                  "catch_rejected": int(np.sum(catches["status"] != "ok")),
+                  "hold": int(np.sum(holds["status"] == "ok")), "hold_rejected": int(np.sum(holds["status"] != "ok"))},
         "edges": {p: {"ok": int(((edge_cols["primitive"] == p) & (edge_cols["status"] == "ok")).sum()),
                       "rejected": int(((edge_cols["primitive"] == p) & (edge_cols["status"] != "ok")).sum())}
                   for p in ("pivot", "regrasp", "tumble")},
         "reasons": {str(s): int(c) for s, c in zip(st, ct, strict=True) if s != "ok"},
     }
     timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
-    return Graph(nodes, edge_cols, catches, summary, timings)
+    return Graph(nodes, edge_cols, one, summary, timings)
 
 
 def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> list[tuple]:
@@ -379,7 +397,7 @@ def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> lis
 
 
 def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placement, pose_b, edge_v,
-                     params: Params) -> dict:
+                     params: Params, grasp_contacts: dict | None = None) -> dict:
     """Where a ball can wait for an object tumbled into USP, catch it and hold it alone (§5.2.2, Fig. 14).
 
     For each tumble over hull edge ``edge_v (K, 2)`` onto the USP pose ``pose_b (K,)`` (``X_WO (P, 4, 4)``
@@ -392,10 +410,9 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
     the CoM along it) first. A candidate (pose, arm, contact) is checked once: IK of the ball centre
     at the landing, no collision with the other arm at rest (only the catching ball touches the
     object) and the object held by that ball alone on its table contact (``poses.table_support``; the
-    stability LP with ``hold_friction_safety`` of the scene's friction, its force bound and the CoM
-    moved out by the SP margin, ``poses.held_com``, as ``stages.sample`` checks ``hold_*``).
+    stability LP: :func:`check_holds`).
 
-    Returns columns ``pose_id, arm, contact, status`` (``ok`` or the first failure) and ``q (N, n)``.
+    Returns :func:`check_holds`' columns.
     """
     con = tables["contacts"]
     p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
@@ -416,6 +433,60 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
         best = cand[np.lexsort((cand, -(lever - 0.5 * off)))][: params.catch_candidates]
         for arm in ("left", "right"):
             rows.update(dict.fromkeys((b, arm, int(c)) for c in best))
+            # ... and every such contact that is the arm's contact of a grasp of the landing pose: the
+            # catcher then holds on its grasp contact and only the pusher moves (Fig. 14).
+            own = (grasp_contacts or {}).get((b, arm), ())
+            rows.update(dict.fromkeys((b, arm, int(c)) for c in cand if int(c) in own))
+    return check_holds(scene, model, tables, robot, collide, X_WO, placement, list(rows), params)
+
+
+def hold_candidates(scene: Scene, model, tables, robot, collide, X_WO, placement, catches: dict,
+                    params: Params) -> dict:
+    """Where the pusher's ball can hold the object alone after a catch, pressing it onto the table from
+    above (the hand-over's intermediate state, :func:`hold_edges`).
+
+    For each USP pose with an ok catch, the pusher's (the other arm's) candidates are the contacts
+    whose outward normal is within ``catch_cone`` of straight up, their ball above the table top
+    (inside its edges), the ``hold_candidates`` farthest from the CoM (horizontally) first: a ball
+    pressing down there turns the object back onto the table with a long lever, by its normal force,
+    where a ball on a side face holds it only by friction. No antipodal pair offers them (their
+    partner lies under the object on the table). The checks are :func:`check_holds`'.
+    """
+    con = tables["contacts"]
+    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    r, half = scene.robot.ball_radius, np.asarray(scene.table.size) / 2
+    ok = catches["status"] == "ok"
+    keys = dict.fromkeys(zip(catches["pose_id"][ok].tolist(),
+                             ["right" if a == "left" else "left" for a in catches["arm"][ok].tolist()], strict=True))
+    rows = []
+    for b, arm in keys:  # a few dozen (pose, pusher)
+        X = X_WO[b]
+        n_W = se3.rotate_vectors(X, n_O)
+        p_W = se3.transform_points(X, p_O)
+        ball = p_W + r * n_W
+        over = np.all(np.abs(ball[:, :2]) <= half - params.catch_clearance, axis=1)
+        cand = np.flatnonzero((n_W[:, 2] >= np.cos(params.catch_cone)) & over)
+        com = se3.transform_points(X, model.com)
+        lever = np.linalg.norm(p_W[cand, :2] - com[:2], axis=1)
+        rows += [(b, arm, int(c)) for c in cand[np.lexsort((cand, -lever))][: params.hold_candidates]]
+    return check_holds(scene, model, tables, robot, collide, X_WO, placement, rows, params)
+
+
+def check_holds(scene: Scene, model, tables, robot, collide, X_WO, placement, rows: list, params: Params) -> dict:
+    """Check one-ball hold candidates ``rows [(pose, arm, contact)]``: IK of the ball centre, no
+    collision with the other arm at rest (only this ball touches the object) and the object held by
+    this ball alone on its table contact (``poses.table_support``; the stability LP with
+    ``hold_friction_safety`` of the table's friction and ``hold_eef_friction`` of the ball's, the
+    scene's force bound and the CoM moved out by the SP margin, ``poses.held_com``, as
+    ``stages.sample`` checks ``hold_*``).
+
+    Returns columns ``pose_id, arm, contact, status`` (``ok`` or the first failure) and ``q (N, n)``.
+    """
+    con = tables["contacts"]
+    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    r, half = scene.robot.ball_radius, np.asarray(scene.table.size) / 2
     n = robot.arm("left").dof
     N = len(rows)
     pose = np.array([k[0] for k in rows], dtype=np.int64)
@@ -457,7 +528,7 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
                                  se3.transform_points(X[live], p_O[contact[live]])[:, None],
                                  -se3.rotate_vectors(X[live], n_O[contact[live]])[:, None], None,
                                  float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                 stability.Params(mu_eef=params.hold_friction_safety * scene.object.friction,
+                                 stability.Params(mu_eef=params.hold_eef_friction * scene.object.friction,
                                                   mu_table=params.hold_friction_safety * scene.table.friction,
                                                   f_max=scene.robot.max_eef_force), compute_margin=False)
         status[live[~res.stable]] = "unstable"
@@ -499,6 +570,51 @@ def handover_edges(catches: dict, grasps, q_g, X_WO, collide, weight: float) -> 
     movers = np.where(same, pusher, np.char.add(np.char.add(pusher, ","), catcher.astype(str)))
     return [(int(n), int(x), "regrasp", weight, str(st), -1, -1, -1, str(m))
             for n, x, st, m in zip(catches["node_id"][ci].tolist(), g.tolist(), status, movers, strict=True)]
+
+
+def hold_edges(catches: dict, holds: dict, grasps, q_g, X_WO, collide, weight: float) -> list[tuple]:
+    """The hand-over through a hold (Fig. 18 e-f, each ball moving while the other holds alone by its
+    normal force): directed regrasp edges, half the regrasp weight each,
+
+    - catch node (catcher k on e) -> hold node of its pose (the pusher p on H): p moves to H while k
+      holds; the two arms there free of collision (``status`` else the hold's own reason);
+    - hold node (p on H) -> each grasp (c, d) of its pose: k moves to its contact of the grasp while p
+      holds alone at H, then p to its own while k's ball holds alone (``hold_*`` of the grasp, else
+      ``unstable``); the arms at H and at k's grasp contact free of collision. ``arm`` is "k,p".
+
+    Returns rows as :func:`usp_regrasp_edges`'.
+    """
+    rows = []
+    ok_c = np.flatnonzero(catches["status"] == "ok")
+    for i in ok_c.tolist():  # catch -> hold: a few hundred pairs
+        sel = np.flatnonzero((holds["pose_id"] == catches["pose_id"][i]) & (holds["arm"] != catches["arm"][i]))
+        rows += [(i, j) for j in sel.tolist()]
+    out = []
+    if rows:
+        ci, hj = np.array(rows, dtype=np.int64).T
+        left = catches["arm"][ci] == "left"
+        ql = np.where(left[:, None], catches["q"][ci], holds["q"][hj])
+        qr = np.where(left[:, None], holds["q"][hj], catches["q"][ci])
+        _, why = collide(ql, qr, X_WO[catches["pose_id"][ci]], np.ones((len(ci), 2), bool))
+        status = np.where(holds["status"][hj] == "ok", why, holds["status"][hj])
+        out += [(int(a), int(b), "regrasp", weight / 2, str(st), -1, -1, -1, str(m)) for a, b, st, m in
+                zip(catches["node_id"][ci].tolist(), holds["node_id"][hj].tolist(), status, holds["arm"][hj],
+                    strict=True)]
+    rows = []
+    for j in np.flatnonzero(holds["status"] == "ok").tolist():  # hold -> grasp: the grasps of its pose
+        rows += [(j, g) for g in np.flatnonzero(grasps["pose_id"] == holds["pose_id"][j]).tolist()]
+    if rows:
+        hj, g = np.array(rows, dtype=np.int64).T
+        p_left = holds["arm"][hj] == "left"
+        k_holds = np.where(p_left, grasps["hold_right"][g], grasps["hold_left"][g]).astype(bool)
+        ql = np.where(p_left[:, None], holds["q"][hj], q_g[g, 0])
+        qr = np.where(p_left[:, None], q_g[g, 1], holds["q"][hj])
+        _, why = collide(ql, qr, X_WO[holds["pose_id"][hj]], np.ones((len(hj), 2), bool))
+        status = np.where(k_holds, why, "unstable")
+        movers = np.where(p_left, "right,left", "left,right")
+        out += [(int(a), int(b), "regrasp", weight / 2, str(st), -1, -1, -1, str(m)) for a, b, st, m in
+                zip(holds["node_id"][hj].tolist(), g.tolist(), status, movers, strict=True)]
+    return out
 
 
 def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):
@@ -591,8 +707,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
 
 NODE_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("grasp_id", "id"),
                Field("support")]
-CATCH_FIELDS = [Field("node_id", "id"), Field("pose_id", "id"), Field("arm"), Field("contact", "id"), Field("status"),
-                Field("q", "rad")]
+CATCH_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("arm"), Field("contact", "id"),
+                Field("status"), Field("q", "rad")]
 EDGE_FIELDS = [Field("edge_id", "id"), Field("node_a", "id"), Field("node_b", "id"), Field("primitive"),
                Field("weight"), Field("status"), Field("directed"), Field("vertex", "id"), Field("edge_v0", "id"),
                Field("edge_v1", "id"), Field("arm")]

@@ -204,17 +204,23 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         arms = ["left", "right"] if nodes["kind"][u] == "free" else movers(ctx.edges, data["edge_id"], u)
         new = _State(dict(state.q), dict(state.normal), state.X_WO)
         paths = {}
+        if nodes["kind"][v] == "hold":  # from a catch: the pusher alone, onto the hold's contact
+            (arm_h, c_h, q_h), (arm_c, c_c, _) = ctx.catch[v], ctx.catch[u]
+            target = {arm_h: (c_h, q_h)}
+            contacts = {arm_h: c_h, arm_c: c_c}
+        else:
+            target = {a: (ctx.contact(gv, a), ctx.q_grasp[a][gv]) for a in ("left", "right")}
+            contacts = {a: ctx.contact(gv, a) for a in ("left", "right")}
         for arm in arms:
-            c = ctx.contact(gv, arm)
+            c, q_goal = target[arm]
             n_goal = se3.rotate_vectors(new.X_WO, ctx.n_O[c])
-            res = _transit(ctx, params, new, arm, ctx.q_grasp[arm][gv], n_goal)
+            res = _transit(ctx, params, new, arm, q_goal, n_goal)
             if res.status != "ok":
                 return False, res.status, {**step, "detail": f"{arm} arm: {res.reason}"}, state
             paths[arm] = res.path
             new.q[arm] = res.path[-1]
             new.normal[arm] = n_goal
-        step.update(arms=arms, grasp_to=gv, transit={a: p.tolist() for a, p in paths.items()},
-                    contacts={a: ctx.contact(gv, a) for a in ("left", "right")})
+        step.update(arms=arms, grasp_to=gv, transit={a: p.tolist() for a, p in paths.items()}, contacts=contacts)
         return True, "ok", step, new
     if prim == "pivot":
         vtx, Xa, Xb, p0, t, Xr = _pivot_motion(ctx, params, u, v, data["edge_id"])

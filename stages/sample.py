@@ -31,7 +31,8 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    push). The margin recorded is, in SP, the pivot margin on the first support corner (in hull
    vertex order) that holds, in USP the margin of holding with both balls; ``hold_left`` /
    ``hold_right`` say whether that ball alone holds the USP with ``Params.hold_friction_safety`` of
-   the friction (which a regrasp in USP needs, §5.2.2; a verdict only, its margin is never used).
+   the table's friction and ``Params.hold_eef_friction`` of the ball's (which a regrasp in USP
+   needs, §5.2.2; a verdict only, its margin is never used).
    Every pose of a placement is its resting pose turned about the vertical and shifted, and the
    stability LP is invariant under that motion, so the pivot tests are solved once per (placement,
    pair, corner) and shared by all poses of the placement.
@@ -76,6 +77,12 @@ class Params:
     #: one the MPC plans with (``stages.plan.Params.friction_safety``): a hold at the friction limit
     #: tips in physics at the least disturbance (Exp. 3's hand-over, seed 1).
     hold_friction_safety: float = 0.8
+    #: ... and its ball with only this fraction of the object's friction: a lone ball rolls on the
+    #: object rather than drag it along its face (its wrist holds its orientation compliantly), so a
+    #: hold that needs its friction (a ball on an inboard side face dragging it down, 0.4 of the
+    #: force tangential) tipped the piano in physics once the other ball let go; a hold by the normal
+    #: force (a ball under the overhang, on the outboard face, pressing on the top inboard) stood.
+    hold_eef_friction: float = 0.3
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
@@ -156,9 +163,15 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
         new = mask & (reason == "")
         reason[new] = why
 
-    refuse((n_l[:, 2] < params.under_nz) | (n_r[:, 2] < params.under_nz), "eef_under_object")
-    refuse((ball_l[:, 2] < r + params.table_clearance) | (ball_r[:, 2] < r + params.table_clearance),
-           "env_collision:ball/table")
+    # A ball beyond the table's edge (in plan view) is under nothing but the object: in USP it may
+    # hold the overhang from below (Fig. 14's catcher on its grasp contact).
+    half = np.asarray(scene.table.size) / 2
+    clear_l, clear_r = (np.max(np.abs(b[:, :2]) - half, axis=1) >= r + params.table_clearance
+                        for b in (ball_l, ball_r))
+    refuse(((n_l[:, 2] < params.under_nz) & ~clear_l) | ((n_r[:, 2] < params.under_nz) & ~clear_r),
+           "eef_under_object")
+    refuse(((ball_l[:, 2] < r + params.table_clearance) & ~clear_l) |
+           ((ball_r[:, 2] < r + params.table_clearance) & ~clear_r), "env_collision:ball/table")
     for arm, p, n in (("left", p_l, n_l), ("right", p_r, n_r)):
         s = robot.arm(arm).reach_centre
         to_s = s[:2] - p[:, :2]
@@ -217,7 +230,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     # Stability.
     live = np.flatnonzero(reason == "")
     margins = _stability(scene, model, tables, ps, pose_idx[live], pair_idx[live], X[live], p_l[live], p_r[live],
-                         n_l[live], n_r[live], params.corner_cluster, params.threads, params.hold_friction_safety)
+                         n_l[live], n_r[live], params.corner_cluster, params.threads, params.hold_friction_safety,
+                         params.hold_eef_friction)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -248,7 +262,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
 
 
 def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float,
-               threads: int = 1, hold_friction_safety: float = 1.0) -> dict:
+               threads: int = 1, hold_friction_safety: float = 1.0, hold_eef_friction: float = 1.0) -> dict:
     """Stability verdicts and margins of grasp candidates (see the module docstring, step 6).
 
     The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
@@ -267,7 +281,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
 
     prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
                            f_max=scene.robot.max_eef_force)
-    prm_hold = stability.Params(mu_eef=hold_friction_safety * scene.object.friction,
+    prm_hold = stability.Params(mu_eef=hold_eef_friction * scene.object.friction,
                                 mu_table=hold_friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
     corners = poses.pivot_corners(model, corner_cluster)
     half = np.asarray(scene.table.size) / 2

@@ -154,6 +154,12 @@ class Params:
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble: TumbleParams = field(default_factory=TumbleParams)
     hold: float = 0.5
+    #: A ball holding the object alone in USP (:func:`hold_force`) pushes with this multiple of the
+    #: least force that holds it with the SP margin, found first with ``hold_eef_friction`` of the
+    #: ball's friction (as ``stages.sample`` checks ``hold_*``): with the least force the piano tipped
+    #: in physics whenever its CoM lay a few mm further out than planned (``--randomize``: up to 1 cm).
+    hold_force_factor: float = 3.0
+    hold_eef_friction: float = 0.3
     #: IK on every this many rows of a pivot or push (joints interpolated in between).
     ik_every: int = 4
     #: Fraction of the joint velocity limits used by transits.
@@ -494,9 +500,11 @@ HOLD_RAMP = 0.3
 
 
 def hold_force(env: _Env, X: np.ndarray, contact: int) -> np.ndarray | None:
-    """The least force ``(3,)`` (N, W) with which one ball on ``contact`` holds the object at ``X`` still
-    on its table contact (``poses.table_support``; ``stability.least_eef_forces`` with the MPC's
-    reduced friction, else the scene's), or None when it cannot.
+    """The force ``(3,)`` (N, W) with which one ball on ``contact`` holds the object at ``X`` still on
+    its table contact: ``Params.hold_force_factor`` times the least one (``poses.table_support``;
+    ``stability.least_eef_forces`` with ``hold_eef_friction`` of the ball's friction and the MPC's
+    of the table's, else the MPC's reduced friction, else the scene's), at most the force bound; None
+    when it cannot.
 
     It holds the object with the SP margin (``poses.held_com``): a USP pose may have its CoM just
     inside the table contact, where the least force would be nil and physics tips it.
@@ -508,11 +516,14 @@ def hold_force(env: _Env, X: np.ndarray, contact: int) -> np.ndarray | None:
     pts = np.c_[poly, np.zeros(len(poly))]
     p = se3.transform_points(X, env.p_O[contact])[None]
     n = -se3.rotate_vectors(X, env.n_O[contact])[None]
-    for mu_e, mu_t in ((env.mp.mu_eef, env.mp.mu_table), (scene.object.friction, scene.table.friction)):
+    prm = env.params
+    for mu_e, mu_t in ((prm.hold_eef_friction * scene.object.friction, env.mp.mu_table),
+                       (env.mp.mu_eef, env.mp.mu_table), (scene.object.friction, scene.table.friction)):
         out = stability.least_eef_forces(scene.object.mass, com, pts, p, n,
                                          stability.Params(mu_eef=mu_e, mu_table=mu_t, f_max=env.mp.f_max))
         if out is not None:
-            return out[0][0]
+            f = out[0][0] * prm.hold_force_factor
+            return f * min(1.0, env.mp.f_max / max(float(np.linalg.norm(f)), 1e-12))
     return None
 
 

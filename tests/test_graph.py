@@ -92,3 +92,47 @@ def test_handover_from_a_catch_moves_the_pusher_then_the_catcher_while_the_pushe
     # A left catcher: the right ball is the pusher, and must hold alone before the left one moves.
     edges = _handover([(0, "left", 1)], grasps)
     assert edges == {(100, 0): ("ok", "right"), (100, 1): ("unstable", "right,left"), (100, 2): ("ok", "right,left")}
+
+
+def _hold_edges(catch_rows, hold_rows, grasp_rows, blocked=()):
+    """Hand-over edges through holds: catches and holds ``(pose, arm, contact, status)``, grasps as above.
+    Joint 0 names the configuration: grasp g's arms g, catch i's 50 + i, hold j's 70 + j."""
+    gr = _grasps(grasp_rows)
+    G = len(grasp_rows)
+    q = np.zeros((G, 2, 7))
+    q[:, 0, 0] = q[:, 1, 0] = np.arange(G)
+
+    def table(rows, first_node, first_q):
+        pose, arm, contact, status = (np.array(c) for c in zip(*rows, strict=True))
+        n = len(rows)
+        return {"node_id": first_node + np.arange(n), "pose_id": pose, "arm": arm, "contact": contact,
+                "status": status, "q": np.full((n, 7), first_q + np.arange(n)[:, None], dtype=float)}
+
+    out = graph.hold_edges(table(catch_rows, 100, 50.0), table(hold_rows, 200, 70.0), gr, q,
+                           np.repeat(np.eye(4)[None], 2, axis=0), _collide(blocked), 0.5)
+    assert all(prim == "regrasp" and w == 0.25 for _, _, prim, w, *_ in out)  # half a regrasp each
+    return {(a, b): (st, arm) for a, b, prim, w, st, *_, arm in out}
+
+
+def test_handover_through_a_hold_moves_each_ball_while_the_other_holds_alone():
+    # The right ball caught (catch 100, pose 0); the left (the pusher) may hold alone on top at contact
+    # 11 (hold 200) but not at 12 (hold 201, unstable); hold 202 is the right arm's, and 203 another pose's.
+    catches = [(0, "right", 9, "ok")]
+    holds = [(0, "left", 11, "ok"), (0, "left", 12, "unstable"), (0, "right", 13, "ok"), (1, "left", 14, "ok")]
+    # Grasps of pose 0: (2, 3) whose right ball holds alone, (4, 5) whose right ball does not.
+    grasps = [(0, 2, 3, False, True), (0, 4, 5, True, False), (1, 6, 7, True, True)]
+    edges = _hold_edges(catches, holds, grasps)
+    # catch -> hold: the pusher onto the hold's contact while the catcher holds; a refused hold's reason.
+    assert edges[(100, 200)] == ("ok", "left") and edges[(100, 201)] == ("unstable", "left")
+    assert (100, 202) not in edges and (100, 203) not in edges  # only the other arm's holds on its pose
+    # hold -> grasp: the catcher onto its grasp contact while the pusher holds, then the pusher onto its
+    # own while the catcher's ball holds alone (hold_right of the grasp).
+    assert edges[(200, 0)] == ("ok", "right,left") and edges[(200, 1)] == ("unstable", "right,left")
+    assert (200, 2) not in edges and not any(a == 201 for a, _ in edges)  # its pose only; ok holds only
+    # The right arm's hold 202 hands over to the left ball: the left moves first (hold_left of the grasp).
+    assert edges[(202, 0)] == ("unstable", "left,right") and edges[(202, 1)] == ("ok", "left,right")
+    # The arms at the catch and the hold (joints 50, 70), or at the hold and the catcher's grasp contact
+    # (70, 0), must be free of each other.
+    hit = "self_collision:left_ball/right_ball"
+    assert _hold_edges(catches, holds, grasps, blocked={(70, 50)})[(100, 200)][0] == hit
+    assert _hold_edges(catches, holds, grasps, blocked={(70, 0)})[(200, 0)][0] == hit

@@ -476,3 +476,24 @@ def test_least_eef_force_holding_an_overhang_is_the_lever_rule():
     # More than the payload bound: not held either (the ball would have to carry m g 0.05 / 0.001).
     assert stability.least_eef_forces(m, com, table, np.array([[-0.001, 0.0, 0.2]]), np.array([[0, 0, -1.0]]),
                                       prm) is None
+
+
+def test_a_ball_on_the_inboard_side_holds_an_overhang_only_by_its_friction():
+    """The box of the lever-rule test (CoM 5 mm past the table's edge at x = 0): a ball on its inboard
+    side face (x = -0.3, pushing +x, 5 cm up) turns it back onto the table only by dragging that face
+    down, which needs friction: held with the ball's friction at 0.4, not at 0.15 (0.3 of 0.5, the
+    sampler's and graph's ``hold_eef_friction``); a ball pressing down on the top inboard holds it with
+    none."""
+    m = 2.0
+    com = np.array([0.005, 0.0, 0.1])
+    table = np.array([[0.0, -0.1, 0.0], [0.0, 0.1, 0.0], [-0.3, -0.1, 0.0], [-0.3, 0.1, 0.0]])[None]
+    side = (np.array([[[-0.3, 0.0, 0.05]]]), np.array([[[1.0, 0.0, 0.0]]]))
+    top = (np.array([[[-0.2, 0.0, 0.2]]]), np.array([[[0.0, 0.0, -1.0]]]))
+
+    def held(ball, mu_eef):
+        prm = stability.Params(mu_eef=mu_eef, mu_table=0.4, f_max=50.0)
+        return bool(stability.evaluate(m, com[None], table, None, *ball, None, 0.3, prm,
+                                       compute_margin=False).stable[0])
+
+    assert held(side, 0.4) and not held(side, 0.15)
+    assert held(top, 1e-9)
