@@ -122,7 +122,8 @@ def _summary(b: Path, v: str, times: dict, name: str) -> bool:
     t = Table(title=f"pivot run {name} ({v})", show_header=False)
     c = plan.get("counts", {})
     t.add_row("plan", f"{plan.get('status', '–')}: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} tumbles, "
-              f"{c.get('regrasp', 0)} regrasps, {len(plan.get('log', []))} edges removed by backtracking")
+              f"{c.get('regrasp', 0)} regrasps ({c.get('usp_regrasp', 0)} in USP), "
+              f"{len(plan.get('log', []))} edges removed by backtracking")
     if "remaining_error" in plan:
         t.add_row("goal out of reach", f"{100 * plan['remaining_error']['distance']:.1f} cm short")
     if ex:

@@ -6,8 +6,10 @@ Nodes (``nodes.parquet``):
   both balls on the grasp's contacts;
 - a **free node** per SP pose: the object standing alone, both arms away. It makes regrasping in SP
   linear in the number of grasps: grasp → free → grasp costs the regrasp weight, split in two;
-- a **catch node** per catching candidate of a tumble into USP (``catches.parquet``: pose, arm,
-  contact, joints, status): the object just tumbled, one ball holding it alone (Fig. 14).
+- a **catch node** per catching candidate of a tumble into USP (``catches.parquet``, kind ``catch``:
+  pose, arm, contact, joints, status): the object just tumbled, one ball holding it alone (Fig. 14);
+- a **hold node** per place where the pusher's ball alone holds a caught object, pressing it onto
+  the table from above (``catches.parquet``, kind ``hold``; :func:`hold_candidates`).
 
 Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its reason code):
 
@@ -32,7 +34,11 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   edges into them carry).
 - **hand-over** (a regrasp, weight ``w_regrasp``, directed; :func:`handover_edges`): catch node →
   each grasp of its pose: the pusher takes its contact of the grasp while the catcher holds, then
-  the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f).
+  the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f); or through a hold
+  (:func:`hold_edges`, half the weight each): catch node → hold node (the pusher onto the hold) →
+  grasp (the catcher onto its grasp contact, then the pusher onto its own while the catcher's ball
+  holds alone). Every one-ball hold is checked with ``hold_eef_friction`` of the ball's friction, so
+  it holds by its normal force (a lone ball rolls on the object rather than drag it).
 """
 
 from __future__ import annotations

@@ -19,7 +19,9 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   (``{catcher}_before``), the tumbling MPC must lower the object onto it and hold it there
   (:func:`_usp_tumble_mpc`), and after the push the catcher holds the object alone; the hand-over
   that follows (a regrasp edge out of the catch node, Fig. 18 e–f) moves the pusher to its contact
-  of the grasp, then the catcher to its own while the pusher's ball holds: a regrasp in USP.
+  of the grasp, then the catcher to its own while the pusher's ball holds: a regrasp in USP; or,
+  through a hold node, the pusher first to the hold's contact on top, then the catcher to its grasp
+  contact and the pusher to its own.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
 are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept

@@ -23,10 +23,9 @@ PAPER = {
     "exp1_reach": "Exp. 1 (§6.3, Fig. 16, Table 2): regrasping extends the reach; the graph MPC gait [3] "
                   "ends 12.5 cm short",
     "exp2_rotate": "Exp. 2 (§6.4, Fig. 17): a -90° turn about z with regrasps onto other faces",
-    "exp3_obstacle": "Exp. 3 (§6.5, Fig. 18): an obstacle in front and a narrow table: a tumble onto the end (SP), "
-                     "a pivot through USP at the table's edge; the paper's regrasp in USP is not reached: the "
-                     "hand-overs the graph offers hold the piano with one ball at its friction limit "
-                     "(tests/test_experiments.py)",
+    "exp3_obstacle": "Exp. 3 (§6.5, Fig. 18): an obstacle in front and a narrow table: a tumble over the table's "
+                     "edge into USP onto the catcher's ball, a regrasp in USP one ball at a time (each move while "
+                     "the other ball alone holds the piano) and a pivot back into SP",
     "default": "Simulation (§6.2, Fig. 15): move the piano forward",
 }
 
