@@ -817,7 +817,8 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     T = len(X_ref)
     tgt_c = _ball_centres(X_ref, env.p_O[c], env.n_O[c], r)
     if mode == "hold":  # backwards from the plan's final configuration; it must end on its contact
-        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, 1, both=not follow)
+        q_c, why = ik_follow(robot, catcher, tgt_c[::-1], X_ref[::-1], env.n_O[c], q_end, env.params.ik_every,
+                             both=not follow)
         q_c = q_c[::-1]
         # Its first solve, seeded with q_end, moves the posture by ~1e-4 rad; end exactly on q_end, so that
         # no transit (backing off the contact the ball holds the object by) is needed to get there.
@@ -827,7 +828,7 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
         if not first.ok[0]:
             return f"{first.reason[0]} at the start"
         if follow:
-            q_c, why = ik_follow(robot, catcher, tgt_c, X_ref, env.n_O[c], first.q[0], 1)
+            q_c, why = ik_follow(robot, catcher, tgt_c, X_ref, env.n_O[c], first.q[0], env.params.ik_every)
         else:
             q_c, why = _ik_path(robot, catcher, tgt_c, first.q[0], env.params.ik_every, check=True)
     if why != "ok":
@@ -935,7 +936,8 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         n_rel = int(np.count_nonzero(on_p))
         if n_rel not in pusher_paths:  # the same for every catcher
             tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], r)
-            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0], 1)
+            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0],
+                                            env.params.ik_every)
         q_p, why_p = pusher_paths[n_rel]
         if why_p != "ok":
             raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
