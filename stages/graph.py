@@ -301,8 +301,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
                 edges.append((src, n, "tumble", w.tumble, st, -1, e0, e1, pusher))
     edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
     holds = hold_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], catches, params)
-    holds["node_id"] = catch_ids[-1] + 1 + np.arange(len(holds["pose_id"])) if len(catch_ids) else \
-        G + len(kept_sp) + np.arange(len(holds["pose_id"]))
+    holds["node_id"] = G + len(kept_sp) + len(catch_ids) + np.arange(len(holds["pose_id"]))
     edges += hold_edges(catches, holds, grasps, q_g, X_WO, collide, w.regrasp)
     t3 = time.perf_counter()
 

@@ -73,7 +73,7 @@ class Params:
     #: as three rounds from random postures around the rest posture did (7138 vs 7239 grasps).
     collision_retries: int = 1
     retry_jitter: float = 0.3
-    #: A ball alone holds a USP pose (``hold_*``) with this fraction of the friction coefficients, the
+    #: A ball alone holds a USP pose (``hold_*``) with this fraction of the table's friction, the
     #: one the MPC plans with (``stages.plan.Params.friction_safety``): a hold at the friction limit
     #: tips in physics at the least disturbance (Exp. 3's hand-over, seed 1).
     hold_friction_safety: float = 0.8

@@ -160,7 +160,7 @@ class Params:
     #: in physics whenever its CoM lay a few mm further out than planned (``--randomize``: up to 1 cm).
     hold_force_factor: float = 3.0
     hold_eef_friction: float = 0.3
-    #: IK on every this many rows of a pivot or push (joints interpolated in between).
+    #: IK on every this many rows of a pivot, a push or a catch (joints interpolated in between).
     ik_every: int = 4
     #: Fraction of the joint velocity limits used by transits.
     vel_scale: float = 0.5

@@ -792,3 +792,39 @@ def test_off_the_table_allows_the_tracking_error_at_the_edge():
     plan = np.array([[0.0, -0.3498, 0.1], [0.0, -0.32, 0.1], [0.0, -0.39, 0.1], [0.0, -0.39, 0.1]])
     err = np.linalg.norm(com - plan, axis=1)
     assert execute.off_the_table(scene, com, plan, err, 0.05, 0.01).tolist() == [False, True, False, True]
+
+
+def test_a_lone_hold_pushes_a_multiple_of_the_least_force(piano_analysis):
+    """trajectory.hold_force: the upright piano with its CoM 3 mm past the table's edge, held by one ball
+    pressing down on its top inboard: the force pushes into the object, ``hold_force_factor`` times the
+    least one (found with the ball's reduced friction), and never above the force bound."""
+    from types import SimpleNamespace
+
+    from stages import trajectory
+    from stages.objectmodel import load_object_model
+    from stages.sample import placement_pose
+    from stages.scene import PlacementSpec
+
+    model, tables = load_object_model(piano_analysis)
+    scene = load_scene(REPO / "data" / "scenes" / "exp3_obstacle.json")
+    con = tables["contacts"]
+    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    X, _ = placement_pose(PlacementSpec(xy=(0.0, 0.0), yaw_deg=0.0, down=(0.0, 0.0, -1.0)), model, "t")
+    X[0, 3] += 0.3 + 0.003 - se3.transform_points(X, model.com)[0]  # the CoM 3 mm past the edge at x = 0.3
+    p_W, n_W = se3.transform_points(X, p_O), se3.rotate_vectors(X, n_O)
+    top = np.flatnonzero(n_W[:, 2] > 0.99)
+    c = int(top[np.argmin(p_W[top, 0])])  # the top contact farthest inboard
+    assert p_W[c, 0] < 0.25
+
+    def force(factor, f_max=50.0):
+        env = SimpleNamespace(model=model, scene=scene, p_O=p_O, n_O=n_O, sp_margin=0.005,
+                              mp=mpc.Params(mu_eef=0.4, mu_table=0.4, f_max=f_max),
+                              params=trajectory.Params(hold_force_factor=factor))
+        return trajectory.hold_force(env, X, c)
+
+    f1, f3 = force(1.0, 500.0), force(3.0, 500.0)
+    assert f1 is not None and f1 @ -n_W[c] > 0.0
+    np.testing.assert_allclose(f3, 3.0 * f1)
+    capped = force(3.0, 1.5 * np.linalg.norm(f1))
+    np.testing.assert_allclose(capped, 1.5 * f1)
