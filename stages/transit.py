@@ -304,9 +304,10 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
         return _fail("ik_unreachable", f"approach to the goal contact: {A}", n, done())
     A = A[::-1]
 
-    # One batched call: both ends, the retreat and approach segments and the direct segment. The balls
-    # are exempt at the contact ends and inside the retreat/approach segments; the retreat and approach
-    # configurations themselves (R[-1], A[0]) and the direct segment are tested in full.
+    # One batched call: both ends and the retreat and approach segments. The balls are exempt at the
+    # contact ends and inside the retreat/approach segments; the retreat and approach configurations
+    # themselves (R[-1], A[0]) are tested in full. Then the direct segment between them, with its ends,
+    # with the clearance (without it when an end does not keep the clearance).
     r_states = densify(R, w, params.resolution)[0]
     a_states = densify(A, w, params.resolution)[0][:-1]  # its last state is q_goal, tested below
     d_states = densify(np.stack([R[-1], A[0]]), w, params.resolution)[0][:-1]  # ... and A[0]
@@ -318,17 +319,18 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
         (A[:1] if len(A) > 1 else A[:0], np.zeros(min(len(A) - 1, 1), bool), "goal_in_collision",
          "approach to the goal contact"),
         (a_states, np.ones(len(a_states), bool), "goal_in_collision", "approach to the goal contact"),
-        (d_states, np.zeros(len(d_states), bool), "", "direct segment"),
     ]
     ok, reason = check(np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]))
     ends = np.cumsum([len(b[0]) for b in blocks])
-    for (states, _, status, what), e in zip(blocks[:-1], ends[:-1], strict=True):
+    for (states, _, status, what), e in zip(blocks, ends, strict=True):
         bad = np.flatnonzero(~ok[e - len(states): e])
         if len(bad):
             return _fail(status, f"{what}: {reason[e - len(states) + bad[0]]}", n, done())
 
-    mid = wide if params.clearance > 0 and wide(np.stack([R[-1], A[0]]))[0].all() else check
-    if ok[ends[-2]:].all() and (mid is check or mid(d_states)[0].all()):
+    way = wide(np.concatenate([d_states, A[:1]]))[0] if params.clearance > 0 else None  # R[-1] ... A[0]
+    mid = wide if way is not None and way[0] and way[-1] else check
+    direct = way.all() if mid is wide else check(d_states)[0].all()
+    if direct:
         middle = np.stack([R[-1], A[0]])
         stats["planner"] = "direct"
     else:
