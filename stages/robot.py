@@ -1124,25 +1124,25 @@ class CollisionFn:
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
                  touching: np.ndarray | None = None, *, blame: bool = False,
-                 margin: float | None = None) -> tuple[np.ndarray, ...]:
-        """``margin`` (m) replaces the checker's own for this call."""
+                 object_margin: float | None = None) -> tuple[np.ndarray, ...]:
+        """``object_margin`` (m): the object test's margin for this call, when larger than the checker's."""
         N = len(q_left)
-        mg = self.margin if margin is None else float(margin)
+        mg_obj = self.margin if object_margin is None else max(self.margin, float(object_margin))
         chunks = min(self.threads, N // 1024)
         if chunks <= 1:
-            out = self._check(q_left, q_right, X_WO, touching, mg)
+            out = self._check(q_left, q_right, X_WO, touching, mg_obj)
         else:
             def part(rows):
                 return self._check(q_left[rows], q_right[rows], None if X_WO is None else X_WO[rows],
-                                   None if touching is None else touching[rows], mg)
+                                   None if touching is None else touching[rows], mg_obj)
 
             with ThreadPoolExecutor(chunks) as pool:
                 parts = list(pool.map(part, np.array_split(np.arange(N), chunks)))
             out = tuple(np.concatenate(x) for x in zip(*parts, strict=True))
         return out if blame else out[:2]
 
-    def _check(self, q_left, q_right, X_WO, touching, mg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        arms = self.arms
+    def _check(self, q_left, q_right, X_WO, touching, mg_obj: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        arms, mg = self.arms, self.margin
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
         if X_WO is not None:
@@ -1263,7 +1263,7 @@ class CollisionFn:
                 test = np.ones((len(a.cap_names), len(rows)), bool)
                 test[a.cap_link == a.eef_index] = ~touch[rows, s]
                 k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), _rows(A, rows), _rows(B, rows),
-                                  a.cap_r, mg, test)
+                                  a.cap_r, mg_obj, test)
                 st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
         return st.alive, st.reason.astype(str), st.blame
 

@@ -18,7 +18,7 @@ Collision rules. Every state is tested with the batched checker of ``stages.robo
 fixed pose ``X_WO``. The moving ball is exempt from the object test only on the retreat and approach
 segments (it starts and ends in contact and moves along the normal there); the retreat and approach
 configurations themselves, 3 cm off the surface, and everything between them are tested in full,
-between them with the checker's margin raised to ``Params.clearance`` (kept only when the retreat and
+between them with the object's margin raised to ``Params.clearance`` (kept only when the retreat and
 approach configurations pass it). The still arm's ball is always exempt from the object test: it does
 not move, and whether it may touch the object is the grasp's business, not the transit's.
 
@@ -74,9 +74,9 @@ class Params:
     simplify: bool = True
     #: Seed of OMPL's random number generator.
     seed: int = 0
-    #: Clearance (m) the arm keeps from everything between the retreat and the approach (the
-    #: collision checker's margin there): a path that grazes the object at the check's resolution
-    #: touches it in physics, where the object lies a few mm from its planned pose (Exp. 3's
+    #: Clearance (m) the arm keeps from the object between the retreat and the approach (the
+    #: collision checker's margin for the object there): a path that grazes the object at the check's
+    #: resolution touches it in physics, where the object lies a few mm from its planned pose (Exp. 3's
     #: hand-over: the left stick brushed the piano's top edge). The transit keeps none when the
     #: retreat's or the approach's end lies closer than that.
     clearance: float = 0.005
@@ -195,7 +195,7 @@ class _Checker:
         touching[:, self.moving] = np.broadcast_to(ball_exempt, (N,))
         X = None if self.X_WO is None else np.broadcast_to(self.X_WO, (N, 4, 4))
         ok, reason = (self.collide(q_left, q_right, X, touching) if self.margin is None else
-                      self.collide(q_left, q_right, X, touching, margin=self.margin))
+                      self.collide(q_left, q_right, X, touching, object_margin=self.margin))
         self.calls += 1
         self.states += N
         self.reasons.update(reason[~ok].tolist())

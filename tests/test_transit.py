@@ -195,12 +195,12 @@ def test_wall_forces_a_collision_free_detour(robot, wall):
 
 
 def test_the_way_between_retreat_and_approach_keeps_the_clearance(robot):
-    # A "thin wall" the checker sees only with a margin: joint 1 of the left arm within 0.05 rad of 0.5.
+    # A "thin wall" the checker sees only with an object margin: joint 1 of the left arm within 0.05 rad of 0.5.
     # The states between the ends are tested with Params.clearance, the ends without: with a clearance
     # the way from joint 1 at 0 to 1 (which must pass 0.5) is blocked, without one it is free; and when
     # an end itself lies within the clearance the transit keeps none.
-    def collide(q_left, q_right, X_WO, touching, margin=0.0):
-        bad = (margin > 0) & (np.abs(q_left[:, 0] - 0.5) < 0.05)
+    def collide(q_left, q_right, X_WO, touching, object_margin=0.0):
+        bad = (object_margin > 0) & (np.abs(q_left[:, 0] - 0.5) < 0.05)
         return ~bad, np.where(bad, "env_collision:left_link_1_s/wall", "ok")
 
     a = robot.arm("left")
