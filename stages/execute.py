@@ -54,7 +54,10 @@ surface along the contact normal (``kp * squeeze`` = 25 N, the notes' 20-30 N; `
 normals oppose, :func:`_squeeze_weights`: a ball alone must not push) and ``F_plan`` is fed forward; ``w``
 rises from 0 to 1 over ``Params.ramp_time`` after the flag turns on and falls back before it turns
 off (minimum-jerk), so contacts are made and broken smoothly. The contact normal is the direction from
-the planned ball centre to the nearest point of the mesh in the planned object pose. The torso joint
+the planned ball centre to the nearest point of the mesh in the planned object pose. A ball that
+holds the object alone between primitives (USP, the other ball in transit; :func:`_hold_weights`)
+aims at its planned contact moved by the object's drift from the plan, measured once when that hold
+begins: the object then lies a few mm off its plan, out of reach of the feed-forward's offset. The torso joint
 is held at the planning angle by a stiff position motor.
 
 Ball rotation (notes: a ball that only translates turns the object ``(L + 2r) / L`` times the
@@ -691,7 +694,7 @@ class _Targets:
     keep: np.ndarray  # (S, 2) weight of the rolling correction: 1 in contact, fading to 0 after
     qdd: np.ndarray  # (S, 2, n) rad/s^2
     compliance: np.ndarray  # (S, 2) 1: impedance at the ball (contact), 0: joint tracking (free motion)
-    follow: np.ndarray  # (S, 2) weight of the ball's target following the measured object (a lone hold)
+    follow: np.ndarray  # (S, 2) weight of the drift correction of a ball holding the object alone
     p_o: np.ndarray  # (S, 3) planned object origin (m, W)
 
 
