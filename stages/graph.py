@@ -38,7 +38,7 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   (:func:`hold_edges`, half the weight each): catch node → hold node (the pusher onto the hold) →
   grasp (the catcher onto its grasp contact, then the pusher onto its own while the catcher's ball
   holds alone). Every one-ball hold is checked with ``hold_eef_friction`` of the ball's friction, so
-  it holds by its normal force (a lone ball rolls on the object rather than drag it).
+  it holds by its normal force (a hold by the ball's friction tipped the piano in physics).
 """
 
 from __future__ import annotations

@@ -77,11 +77,12 @@ class Params:
     #: one the MPC plans with (``stages.plan.Params.friction_safety``): a hold at the friction limit
     #: tips in physics at the least disturbance (Exp. 3's hand-over, seed 1).
     hold_friction_safety: float = 0.8
-    #: ... and its ball with only this fraction of the object's friction: a lone ball rolls on the
-    #: object rather than drag it along its face (its wrist holds its orientation compliantly), so a
-    #: hold that needs its friction (a ball on an inboard side face dragging it down, 0.4 of the
-    #: force tangential) tipped the piano in physics once the other ball let go; a hold by the normal
-    #: force (a ball under the overhang, on the outboard face, pressing on the top inboard) stood.
+    #: ... and its ball with only this fraction of the object's friction: a hold that needs the
+    #: ball's friction (a ball on an inboard side face dragging it down, 0.4 of the force tangential)
+    #: tipped the piano in physics once the other ball let go, although the ball pressed with the
+    #: planned force (likely it rolls on the face, its wrist holding its orientation only
+    #: compliantly; not measured); holds by the normal force (a ball under the overhang, on the
+    #: outboard face, pressing on the top inboard) stood.
     hold_eef_friction: float = 0.3
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
