@@ -22,8 +22,9 @@ experiment shows, and the planner's ablations (``plan.Params(no_regrasp=, no_tum
   while the catcher's ball holds alone. That grasp pivots it back into SP at the goal (USP regrasps:
   2). Without tumbling or without USP, no plan. One-ball holds are checked with 0.3 of the ball's
   friction (``hold_eef_friction``): the hand-overs found with 0.8 of it (the pusher on the inboard
-  side face, holding by friction) tipped the piano in physics, the ball pressing as planned. In PyBullet the nominal run and seeds 0-4 succeed (1.2-4.8 mm, < 1°). The pen holder does
-  not decide the route: the goal lies on another face, which only a tumble reaches. The layout is not
+  side face, holding by friction) tipped the piano in physics, the ball pressing as planned. In
+  PyBullet the nominal run and seeds 0-4 succeed (1.2-4.8 mm, < 1°). The pen holder does not decide
+  the route: the goal lies on another face, which only a tumble reaches. The layout is not
   robust: its goal is a lattice pose (the end of the pivot out of USP); moved by 1 cm or 5°, or with
   the start moved by 1 cm, there is no path in the graph: the goal's connecting pivots (from that
   pose, 1 cm away) turn about corners that none of the few grasps there can pivot on. Only three SP
