@@ -16,10 +16,10 @@ the centre of the footprint and the four feet stand on z = 0. Parts (all dimensi
 - 14 white keys (boxes with 3 mm gaps) on the ledge between two end blocks (cheeks).
 
 The parts overlap by a millimetre or more and no two of their faces are coplanar; they are joined by
-a boolean union with ``manifold3d`` (a development-only dependency: the committed OBJ is what the
-pipeline reads). The result is written canonically -- vertices rounded to 1e-6 m, merged and sorted,
-each face rotated to start at its smallest index and the faces sorted -- so reruns are byte-identical
-whatever order the boolean engine emits.
+a boolean union with ``manifold3d`` (the committed OBJ is what the pipeline reads). The result is
+written canonically by ``stages.objects`` (so pivot must be installed) -- vertices rounded to 1e-6 m,
+merged and sorted, each face rotated to start at its smallest index and the faces sorted -- so reruns
+are byte-identical whatever order the boolean engine emits.
 """
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ import manifold3d
 import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull
+
+from stages.objects import DECIMALS, canonical_arrays, obj_text
 
 WIDTH, DEPTH, HEIGHT = 0.425, 0.205, 0.45
 LEG_RADIUS, LEG_HEIGHT, LEG_SECTIONS, LEG_INSET = 0.018, 0.09, 24, 0.002
@@ -44,7 +46,6 @@ KEY_FRONT_Y, KEY_BACK_Y = -0.100, -0.040
 CHEEK_WIDTH, CHEEK_TOP = 0.025, 0.262
 #: Keys and cheeks sink this far into the ledge (overlap for the union).
 SINK = 0.001
-DECIMALS = 6
 
 
 def box(lo, hi) -> manifold3d.Manifold:
@@ -95,25 +96,12 @@ def make_parts() -> list[manifold3d.Manifold]:
     return parts
 
 
-def canonical(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
-    """Rounded, merged, sorted vertices ``(n, 3)`` and faces ``(m, 3)`` with the winding kept."""
-    v = np.round(mesh.vertices, DECIMALS) + 0.0  # + 0.0 turns -0.0 into 0.0
-    v_unique, inverse = np.unique(v, axis=0, return_inverse=True)
-    f = inverse.reshape(-1)[mesh.faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    # Rotate each face (a cyclic shift keeps its orientation) so its smallest index comes first.
-    shift = np.argmin(f, axis=1)
-    f = np.take_along_axis(f, (shift[:, None] + np.arange(3)) % 3, axis=1)
-    f = f[np.lexsort(f.T[::-1])]
-    return v_unique, f
-
-
 def build() -> tuple[np.ndarray, np.ndarray]:
     """Vertices ``(n, 3)`` m and faces ``(m, 3)`` of the piano, checked; raises SystemExit if broken."""
     solid = manifold3d.Manifold.batch_boolean(make_parts(), manifold3d.OpType.Add)
     out = solid.to_mesh()
     mesh = trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3], np.asarray(out.tri_verts), process=False)
-    vertices, faces = canonical(mesh)
+    vertices, faces = canonical_arrays(mesh.vertices, mesh.faces)
     check = trimesh.Trimesh(vertices, faces, process=False)
     problems = []
     if not check.is_watertight:
@@ -141,11 +129,9 @@ def build() -> tuple[np.ndarray, np.ndarray]:
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Write an OBJ with fixed number formatting (1-based faces), atomically."""
-    lines = ["# toy piano (pivot, data/objects/make_toy_piano.py); metres, object frame O"]
-    lines += [f"v {x:.{DECIMALS}f} {y:.{DECIMALS}f} {z:.{DECIMALS}f}" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    comment = "toy piano (pivot, data/objects/make_toy_piano.py); metres, object frame O"
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
+    tmp.write_text(obj_text(vertices, faces, comment))
     tmp.replace(path)
 
 
