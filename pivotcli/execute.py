@@ -23,7 +23,7 @@ def execute(
     trajectories: Annotated[Path | None, typer.Option(help="Default <build>/full/trajectories.parquet.")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: beside it).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the physics perturbations (with --randomize).")] = 0,
-    randomize: Annotated[bool, typer.Option(help="Perturb friction, CoM and inertia (robustness runs).")] = False,
+    randomize: Annotated[bool, typer.Option(help="Perturb friction, CoM, inertia and mass (robustness runs).")] = False,
     gui: Annotated[bool, typer.Option(help="Open PyBullet's window (results are the same).")] = False,
     frames: Annotated[int, typer.Option(help="Frames to render for pivot show execution.")] = 24,
 ) -> None:

@@ -216,7 +216,8 @@ class Params:
     success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``.
     seed : seed of the perturbations (``randomize``).
     randomize : perturb friction by +-friction_jitter (relative), the CoM by +-com_jitter (m per
-        axis) and the principal inertias by +-inertia_jitter (relative), uniformly.
+        axis), the principal inertias by +-inertia_jitter and the mass by +-mass_jitter (relative),
+        uniformly; the plan keeps the nominal values, as a robot does not know the true ones.
     cache_dir : folder of the convex-decomposition cache ("" = ``<system temp>/pivot-convex``).
     width, height, camera_* : rendered frames (pixels) and the fixed camera: target (m, W),
         distance (m), yaw and pitch (deg, PyBullet's convention).
@@ -250,6 +251,7 @@ class Params:
     friction_jitter: float = 0.2
     com_jitter: float = 0.01
     inertia_jitter: float = 0.1
+    mass_jitter: float = 0.15
     cache_dir: str = ""
     width: int = 480
     height: int = 360
@@ -946,12 +948,15 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         f_mu = rng.uniform(1 - params.friction_jitter, 1 + params.friction_jitter)
         d_com = rng.uniform(-params.com_jitter, params.com_jitter, 3)
         f_lam = rng.uniform(1 - params.inertia_jitter, 1 + params.inertia_jitter, 3)
+        # Drawn last, so that a seed's other perturbations are the ones it drew before mass was jittered.
+        f_m = rng.uniform(1 - params.mass_jitter, 1 + params.mass_jitter)
         mu *= f_mu
         com_true = com_O + d_com
-        lam = lam * f_lam
+        lam = lam * f_lam * f_m  # the inertia scales with the mass (same shape, uniform density)
+        mass = mass * f_m
         X_OP = se3.make_transform(X_OP[:3, :3], com_true)
         perturbation = {"friction_factor": float(f_mu), "com_offset": d_com.tolist(),
-                        "inertia_factors": f_lam.tolist()}
+                        "inertia_factors": f_lam.tolist(), "mass_factor": float(f_m)}
     X_PO = se3.invert(X_OP)
 
     # Targets from the plan.

@@ -477,13 +477,14 @@ def test_obstacle_in_the_swept_path_is_reported(pivot_case):
 
 
 @pytest.mark.slow
-def test_randomized_friction_com_and_inertia_still_pivot(pivot_case):
+def test_randomized_friction_com_inertia_and_mass_still_pivot(pivot_case):
     p = pivot_case["params"]
     params = execute.Params(randomize=True, seed=3, cache_dir=p.cache_dir)
     ex = _run(pivot_case, params=params)
     pert = ex.metrics["perturbation"]
     assert 0.8 <= pert["friction_factor"] <= 1.2 and np.abs(pert["com_offset"]).max() <= 0.01
     assert np.abs(np.asarray(pert["inertia_factors"]) - 1).max() <= 0.1
+    assert 0.85 <= pert["mass_factor"] <= 1.15 and pert["mass_factor"] != 1.0
     assert ex.metrics["success"] and ex.metrics["max_pivot_slip"] < 0.005
 
 
