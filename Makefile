@@ -19,7 +19,7 @@ B := build/$(SCENE)
 # Code every stage uses: a change here reruns everything.
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench analysis sample plan mpc execute reproduce golden clean
+.PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute reproduce golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -111,6 +111,18 @@ reproduce: $(INSTALLED) ## all experiment scenes, full planner and ablations, in
 	  $(MAKE) --no-print-directory -s -k SCENE={} VARIANT=$$v mpc execute > /dev/null 2>&1 || echo "{} $${v:-full}: stopped"; \
 	  done; echo "{}: done"'
 	$(PIVOT) report build --out build/report/README.md
+
+# The standard benchmark: every object family x 6 goals, 2 physics seeds, on a Dask LocalCluster of 2
+# workers. The suite is redrawn only when its code changes; `pivot benchmark run` skips the cases
+# whose results are current, so an interrupted sweep resumes.
+BENCH := build/benchmark
+$(BENCH)/suite.json: stages/benchmark/suite.py stages/objects.py stages/sample.py stages/analyze.py \
+		data/scenes/default.json $(SHARED) | $(INSTALLED)
+	$(PIVOT) benchmark make $(BENCH) --goals 6 --seed 0
+
+benchmark: $(BENCH)/suite.json ## general objects and goals swept on Dask -> build/benchmark/report.md
+	$(PIVOT) benchmark run $(BENCH) --seeds 2 --workers 2 --timeout 600
+	$(PIVOT) benchmark report $(BENCH)
 
 lint: $(INSTALLED) ## ruff
 	$(BIN)/ruff check pivotcli stages tests bench

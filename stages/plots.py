@@ -350,3 +350,37 @@ def show_execution(run_dir: str | Path, png: str | Path, gif: str | Path | None 
         images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
         with artifacts.atomic_path(gif) as tmp:
             images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=250, loop=0)
+
+
+def show_benchmark_rates(groups: list[tuple[str, dict]], png: str | Path) -> None:
+    """Benchmark: per group (object or goal kind) the plan-found rate over reachable cases and the
+    physics success rate over planned runs (counts of :func:`stages.benchmark.report.rates`)."""
+    names = [g for g, _ in groups]
+    found = [r["found"] / r["reachable"] if r["reachable"] else 0.0 for _, r in groups]
+    phys = [r["success_planned"] / r["runs_planned"] if r["runs_planned"] else 0.0 for _, r in groups]
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.8 * len(names) + 2), 3.6))
+    ax.bar(x - 0.2, found, 0.4, label="plan found (of reachable cases)")
+    ax.bar(x + 0.2, phys, 0.4, label="physics success (of planned runs)")
+    for i, (_, r) in enumerate(groups):
+        ax.text(i, 1.02, f"{r['reachable']}/{r['cases']}", ha="center", fontsize=7)
+    ax.set_xticks(x, names, rotation=30, ha="right")
+    ax.set_ylim(0, 1.12)
+    ax.set_ylabel("rate")
+    ax.set_title("benchmark (numbers: reachable / cases)", fontsize=10)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=2)
+    fig.tight_layout()
+    _save(fig, png)
+
+
+def show_benchmark_times(times: dict[str, np.ndarray], png: str | Path) -> None:
+    """Benchmark: the distribution of wall time (s) per stage process, as box plots (log scale)."""
+    names = [k for k, v in times.items() if len(v)]
+    fig, ax = plt.subplots(figsize=(6.4, 3.4))
+    ax.boxplot([times[k] for k in names], showfliers=True)
+    ax.set_xticks(np.arange(1, len(names) + 1), names)
+    ax.set_yscale("log")
+    ax.set_ylabel("wall time (s)")
+    ax.set_title("time per stage process", fontsize=10)
+    fig.tight_layout()
+    _save(fig, png)

@@ -1,0 +1,114 @@
+"""The benchmark: goal drawing against closed-form footprints, the stage runner's limits, and a smoke
+sweep on a Dask LocalCluster (schema and values against the per-case artifacts, a crashing case
+recorded while the others finish, a rerun that skips the finished cases)."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from pivotcli.app import app
+from stages import artifacts
+from stages.benchmark import suite, sweep
+
+runner = CliRunner()
+
+
+class _Model:
+    """A box of 0.4 x 0.2 (plan) resting with its CoM projection at the origin (one placement)."""
+
+    vertices = np.array([[x, y, z] for x in (-0.2, 0.2) for y in (-0.1, 0.1) for z in (0.0, 0.3)])
+    X_TO = np.eye(4)[None]
+
+
+def test_footprint_of_a_box_turned_90_deg_swaps_its_extents():
+    b = suite.footprint_bounds(_Model, 0, np.pi / 2)
+    np.testing.assert_allclose(b, [-0.1, 0.1, -0.2, 0.2], atol=1e-12)
+
+
+def test_admissible_box_keeps_the_whole_footprint_inside_the_area():
+    area = np.array([-0.3, 0.4, -0.25, 0.25])
+    box = suite.admissible_box(suite.footprint_bounds(_Model, 0, 0.0), area)
+    np.testing.assert_allclose(box, [-0.1, 0.2, -0.15, 0.15])
+    assert suite.admissible_box(suite.footprint_bounds(_Model, 0, 0.0), np.array([0, 0.3, -1, 1])) is None
+
+
+@pytest.mark.parametrize("kind", ["translate", "rotate"])
+def test_drawn_goals_fit_the_area_and_their_kind(kind):
+    prm = suite.SuiteParams(objects=())
+    area = np.array([-0.33, 0.43, -0.28, 0.28])
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        start, goal = suite.draw_case(rng, _Model, kind, 0, [], area, prm)
+        for p in (start, goal):  # the footprint lies in the area (rounding of xy to 0.1 mm)
+            b = suite.footprint_bounds(_Model, 0, np.radians(p.yaw_deg)) + np.repeat(p.xy, 2)
+            assert b[0] >= area[0] - 1e-4 and b[1] <= area[1] + 1e-4 and b[2] >= area[2] - 1e-4
+            assert b[3] <= area[3] + 1e-4
+        d = np.hypot(*np.subtract(goal.xy, start.xy))
+        dyaw = abs((goal.yaw_deg - start.yaw_deg + 180) % 360 - 180)
+        if kind == "translate":
+            assert 0.1 - 1e-3 <= d <= 0.45 + 1e-3 and dyaw < 1e-6
+        else:
+            assert d <= 0.45 + 1e-3 and 30 - 0.01 <= dyaw <= 180 + 0.01
+
+
+def test_a_stage_past_its_time_limit_is_killed_and_recorded(tmp_path):
+    run = sweep.run_stage("plan", [sys.executable, "-c", "import time; time.sleep(30)"], tmp_path / "x.log", 0.5)
+    assert run.timed_out and run.seconds < 10 and "timed out" in run.error
+
+
+def test_a_failing_stage_reports_its_last_line_and_exit_code(tmp_path):
+    code = "import sys; print('working'); sys.exit('pivot: error: x.json: object.mass: must be > 0')"
+    run = sweep.run_stage("sample", [sys.executable, "-c", code], tmp_path / "x.log", 30)
+    assert run.exit_code == 1 and run.error.endswith("must be > 0") and run.peak_mb > 1
+    assert sweep.stage_outcome(run, tmp_path, 0) == ("sample:crash", run.error)
+
+
+def test_reason_codes_fold_numbers():
+    assert sweep.slug("gave up after 12 removed edges") == "gave_up_after_n_removed_edges"
+
+
+@pytest.mark.slow
+def test_smoke_sweep_on_a_local_cluster(tmp_path):
+    out = tmp_path / "bench"
+    r = runner.invoke(app, ["benchmark", "make", str(out), "--objects", "box,drum", "--goals", "2"])
+    assert r.exit_code == 0, r.output
+    cases = artifacts.read_json(out / "suite.json", "benchmark_suite")["cases"]
+    assert [c["kind"] for c in cases] == ["translate", "rotate"] * 2
+    for c in cases:  # every case is an ordinary scene file
+        assert json.loads((out / c["scene"]).read_text())["name"] == c["case"]
+    broken = cases[-1]["case"]
+    (out / "runs" / broken).mkdir(parents=True)
+    (out / "runs" / broken / "logs").write_text("a file where the case's log folder goes: its task raises")
+
+    r = runner.invoke(app, ["-q", "benchmark", "run", str(out), "--workers", "2", "--seeds", "1",
+                            "--timeout", "400"])
+    assert r.exit_code == 0, r.output
+    res = artifacts.read_table(out / "results.parquet", "benchmark_results")
+    assert list(res.columns) == [f.name for f in sweep.RESULT_FIELDS] and len(res) == len(cases)
+    rows = {c: i for i, c in enumerate(res["case"])}
+    i = rows[broken]
+    assert res["reason"][i] == "harness:crash" and "FileExistsError" in res["error"][i]
+    for c in cases[:-1]:  # the others finished, and their rows say what their artifacts say
+        i, b = rows[c["case"]], out / "runs" / c["case"]
+        assert res["stage_reached"][i] in sweep.STAGES and np.isfinite(res["t_analyze"][i])
+        assert res["reachable"][i] == c["reachable"]
+        plan = json.loads((b / "full" / "plan.json").read_text())
+        assert res["plan_found"][i] == (plan["status"] == "ok")
+        assert res["pivots"][i] == plan.get("counts", {}).get("pivot", 0)
+        if res["stage_reached"][i] == "execute":
+            ex = json.loads((b / "full" / "seed0" / "execution.json").read_text())
+            assert res["success"][i] == ex["success"]
+            assert res["final_position_error"][i] == pytest.approx(ex["final_position_error"])
+    stamps = {c["case"]: (out / "runs" / c["case"] / "case.json").stat().st_mtime_ns for c in cases[:-1]}
+
+    r = runner.invoke(app, ["benchmark", "run", str(out), "--workers", "2", "--seeds", "1", "--timeout", "400"])
+    assert r.exit_code == 0 and "1 ran, 3 current (skipped)" in r.output, r.output
+    assert stamps == {c: (out / "runs" / c / "case.json").stat().st_mtime_ns for c in stamps}
+
+    r = runner.invoke(app, ["benchmark", "report", str(out)])
+    assert r.exit_code == 0, r.output
+    text = (out / "report.md").read_text()
+    assert "harness:crash" in text and (out / "figures" / "rates_by_object.png").stat().st_size > 1000
