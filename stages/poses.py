@@ -65,6 +65,13 @@ class Params:
     goal_candidates: int = 40
     goal_connections: int = 6
     goal_max_angle: float = np.radians(30.0)
+    #: A lattice grown from the goal as well (this many kept poses), joined to the start's by up to
+    #: ``tree_joins`` closed-form pivot sequences between the ``tree_candidates`` nearest pairs (a
+    #: heading difference weighs ``yaw_weight`` m per rad); 0 poses: the start's lattice alone.
+    goal_tree_poses: int = 100
+    tree_joins: int = 12
+    tree_candidates: int = 80
+    yaw_weight: float = 0.2
     #: USP: the object rests on at least this much table (m, along its contact with the table) and
     #: its CoM lies at most this far beyond that contact (m), where one ball holds it.
     min_usp_edge: float = 0.05
@@ -200,33 +207,44 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
             links.append((parent, i, primitive, vertex, edge, angle))
         return i, True
 
-    first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
-    queues: dict[int, deque] = {}  # per placement, breadth first
-    expanded: dict[int, int] = {}
     share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
 
-    def push(j: int) -> None:
-        queues.setdefault(rows[j]["g"], deque()).append(j)
-        expanded.setdefault(rows[j]["g"], 0)
+    def grow(root: int, budget: int) -> None:
+        """Expand from ``root`` until ``budget`` new kept poses (module docstring: placements take turns)."""
+        queues: dict[int, deque] = {}  # per placement, breadth first
+        expanded: dict[int, int] = {}
 
-    if rows[first]["status"] == "ok":
-        push(first)
-    n_ok = len(queues)
-    while n_ok < params.max_poses:  # at most max_poses poses
-        open_ = [g for g in queues if queues[g]]
-        if not open_:
-            break
-        g = min(open_, key=lambda g: (expanded[g] / share.get(g, params.other_share), queues[g][0]))  # turns
-        i = queues[g].popleft()
-        expanded[g] += 1
-        for child in _successors(model, corners, rows[i]["X"], g, half, params):
-            if n_ok >= params.max_poses:
+        def push(j: int) -> None:
+            queues.setdefault(rows[j]["g"], deque()).append(j)
+            expanded.setdefault(rows[j]["g"], 0)
+
+        if rows[root]["status"] == "ok":
+            push(root)
+        n_ok = len(queues)
+        while n_ok < budget:
+            open_ = [g for g in queues if queues[g]]
+            if not open_:
                 break
-            j, new = add(child[0], child[1], i, *child[2:])
-            if new and rows[j]["status"] == "ok":
-                n_ok += 1
-                push(j)
-    goal_id = -1 if goal is None else _insert_goal(model, corners, rows, add, *goal, params)
+            g = min(open_, key=lambda g: (expanded[g] / share.get(g, params.other_share), queues[g][0]))  # turns
+            i = queues[g].popleft()
+            expanded[g] += 1
+            for child in _successors(model, corners, rows[i]["X"], g, half, params):
+                if n_ok >= budget:
+                    break
+                j, new = add(child[0], child[1], i, *child[2:])
+                if new and rows[j]["status"] == "ok":
+                    n_ok += 1
+                    push(j)
+
+    first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
+    grow(first, params.max_poses)  # at most max_poses poses
+    if goal is None:
+        return _to_pose_set(rows, links)
+    goal_id = _insert_goal(model, corners, rows, add, *goal, params)
+    if goal_id >= 0 and params.goal_tree_poses > 0:
+        n_start = len(rows)
+        grow(goal_id, params.goal_tree_poses)
+        _join_trees(model, corners, rows, add, n_start, goal_id, params)
     return _to_pose_set(rows, links, goal_id)
 
 
@@ -242,7 +260,6 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     c_goal = se3.transform_points(X_goal, model.com)[:2]
     cand = [i for i, r in enumerate(rows) if r["status"] == "ok" and r["g"] == g_goal and i != goal]
     cand.sort(key=lambda i: float(np.linalg.norm(se3.transform_points(rows[i]["X"], model.com)[:2] - c_goal)))
-    ids = corners[g_goal]
 
     def root(i: int) -> int:  # the start or the tumble landing whose pivots reached pose i
         while rows[i]["primitive"] == "pivot":
@@ -257,22 +274,58 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     cand = firsts[: params.goal_candidates] + [i for i in cand[: params.goal_candidates] if i not in firsts]
     joined = 0
     for i in cand:  # a few dozen closed-form solves
-        conn = connect.connect_poses(rows[i]["X"], X_goal, model.vertices[ids], connect.Params(
-            max_angle=params.goal_max_angle))
-        if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
-            continue  # a pivot this small would merge its pose into its parent's
-        prev = i
-        for step in range(len(conn.angles)):  # at most three pivots
-            last = step == len(conn.angles) - 1
-            X = np.asarray(X_goal, dtype=float) if last else conn.poses[step + 1]
-            j, _ = add(X, g_goal, prev, "pivot", int(ids[conn.corners[step]]), (-1, -1), float(conn.angles[step]))
-            if rows[j]["status"] != "ok":
-                break
-            prev = j
-        joined += prev == goal
+        joined += _connect(model, corners, rows, add, i, X_goal, g_goal, params) == goal
         if joined >= params.goal_connections:
             break
     return goal
+
+
+def _join_trees(model, corners, rows, add, n_start: int, goal_id: int, params: Params) -> int:
+    """Join the goal's tree (rows ``n_start`` on, grown from the goal) to the start's (rows before,
+    the goal's own joins included) by up to three pivots (``stages.connect``) between the nearest pairs
+    of kept poses on one placement, nearest first (CoM distance plus ``yaw_weight`` m per rad of heading),
+    until ``tree_joins`` joins are made or ``tree_candidates`` pairs were tried. Returns the joins made.
+
+    The start's lattice reaches the goal only when its few closed-form joins find grasps at every pose
+    they pass; a lattice grown from the goal as well gives the search many more places to meet (§5.3's
+    graph search then picks among them, with the motion checks deciding).
+    """
+    ok = [i for i, r in enumerate(rows) if r["status"] == "ok"]
+    a = np.array([i for i in ok if i < n_start and i != goal_id], dtype=np.int64)
+    b = np.array([i for i in ok if i >= n_start or i == goal_id], dtype=np.int64)
+    if not len(a) or not len(b):
+        return 0
+    key = np.array([r["key"][:4] for r in rows], dtype=float)  # placement, CoM x, y, yaw
+    d = np.hypot(key[a, 1][:, None] - key[b, 1][None], key[a, 2][:, None] - key[b, 2][None])
+    dyaw = np.abs((key[a, 3][:, None] - key[b, 3][None] + np.pi) % (2 * np.pi) - np.pi)
+    cost = np.where(key[a, 0][:, None] == key[b, 0][None], d + params.yaw_weight * dyaw, np.inf)
+    order = np.argsort(cost, axis=None, kind="stable")[: params.tree_candidates]
+    joined = 0
+    for flat in order:  # a few dozen closed-form solves
+        i, j = a[flat // len(b)], b[flat % len(b)]
+        if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
+            break
+        joined += _connect(model, corners, rows, add, int(i), rows[j]["X"], rows[j]["g"], params) == j
+    return joined
+
+
+def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params: Params) -> int:
+    """Pivot from kept pose ``i`` to ``X_to`` on placement ``g`` by up to three closed-form pivots
+    (``stages.connect``), adding the poses on the way; returns the last kept pose reached (``i`` when
+    none, or when a pivot is too small to be kept apart from its parent)."""
+    ids = corners[g]
+    conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
+        max_angle=params.goal_max_angle))
+    if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
+        return i
+    prev = i
+    for step in range(len(conn.angles)):  # at most three pivots
+        X = np.asarray(X_to, dtype=float) if step == len(conn.angles) - 1 else conn.poses[step + 1]
+        j, _ = add(X, g, prev, "pivot", int(ids[conn.corners[step]]), (-1, -1), float(conn.angles[step]))
+        if rows[j]["status"] != "ok":
+            break
+        prev = j
+    return prev
 
 
 def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = 1e-4) -> np.ndarray:

@@ -181,3 +181,29 @@ def test_held_com_moves_the_com_out_across_the_nearest_edge_of_the_table_contact
     # Past a corner: along the diagonal away from it.
     out = held_com(square, np.array([0.23, 0.24, 0.0]), 0.005)
     np.testing.assert_allclose(out[:2] - [0.23, 0.24], 0.005 * np.array([0.03, 0.04]) / 0.05, atol=1e-12)
+
+
+def _pose_graph_connects(ps) -> bool:
+    import networkx as nx
+
+    G = nx.Graph()
+    G.add_nodes_from(range(len(ps.status)))
+    G.add_edges_from(map(tuple, ps.links))
+    return ps.goal_id >= 0 and nx.has_path(G, 0, ps.goal_id)
+
+
+def test_a_goal_the_start_lattice_cannot_join_is_reached_by_a_lattice_grown_from_it():
+    """A goal 0.45 m away turned 100°: the start's 30 poses lie too far for its three-pivot joins; grown
+    from the goal as well, the two lattices meet and the goal is linked to the start."""
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
+    alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_poses=0),
+                               goal=(Xg, g))
+    assert not _pose_graph_connects(alone)
+    both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_poses=60),
+                              goal=(Xg, g))
+    assert _pose_graph_connects(both)
+    assert np.array_equal(both.X_WO[: len(alone.X_WO)], alone.X_WO)  # the start's lattice is unchanged
+    for a, b in both.links:  # every join is an exact pivot about a vertex that stays on the table
+        assert both.status[a] == "ok" and both.status[b] == "ok"
