@@ -85,6 +85,10 @@ class Params:
     #: The MPC plans with this fraction of the scene's friction coefficients, so that the forces it
     #: plans leave room for what the compliant arms add in execution (the squeeze).
     friction_safety: float = 0.8
+    #: Check every tumble of a path as ``pivot mpc`` will do it (``stages.trajectory.check_tumble``:
+    #: the pusher to its release, a catcher that lowers the object, the tumbling MPC, the catcher's
+    #: transit), so that a plan the search returns is one the motion stage can execute.
+    check_tumble: bool = True
 
 
 @dataclass
@@ -132,9 +136,19 @@ class _Context:
         self.inputs = {"scene": scene.path, "nodes": gd / "nodes.parquet", "edges": gd / "edges.parquet",
                        "catches": gd / "catches.parquet",
                        "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet"}
+        self._tumble_env = None
 
     def contact(self, grasp: int, arm: str) -> int:
         return int(self.grasps["contact_left" if arm == "left" else "contact_right"][grasp])
+
+    def check_tumble(self, q: dict, step: dict, Xa: np.ndarray, Xb: np.ndarray) -> tuple[str, str]:
+        """``stages.trajectory.check_tumble`` with its default parameters (those of ``pivot mpc``)."""
+        from stages import trajectory  # it imports this module's neighbours, not this module
+
+        if self._tumble_env is None:
+            self._tumble_env = trajectory.make_env(self.scene, self.model, self.tables, self.robot,
+                                                   trajectory.Params(), collide=self.collide)
+        return trajectory.check_tumble(self._tumble_env, q, step, Xa, Xb)
 
 
 def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, int]:
@@ -277,13 +291,18 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     if res.status != "ok":
         return False, res.status, {**step, "detail": f"{pusher} arm: {res.reason}"}, state
     transits[pusher] = res.path.tolist()
+    step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit=transits)
+    if into_usp:
+        step.update(catcher=catcher, catch_contact=c_catch)
+    if params.check_tumble:  # the whole tumble as the motion stage will do it: push, catch, MPC, transits
+        code, why = ctx.check_tumble(state.q, step, Xa, Xb)
+        if code != "ok":
+            return False, code, {**step, "detail": why}, state
     new.q[pusher] = q_push[-1]
     new.normal[pusher] = None
     new.X_WO = Xb
-    step.update(edge=[e0, e1], pusher=pusher, pusher_contact=int(c), transit=transits)
     if into_usp:  # the catcher holds the object alone; the next step (a regrasp) hands it over
         new.normal[catcher] = se3.rotate_vectors(Xb, ctx.n_O[c_catch])
-        step.update(catcher=catcher, catch_contact=c_catch)
     return True, "ok", step, new
 
 

@@ -1110,23 +1110,48 @@ def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
 # The stage
 
 
+def make_env(scene, model, tables: dict, robot, params: Params, collide=None) -> _Env:
+    """What the tumbles of a plan need (``collide``: the scene's checker, built on first use if None)."""
+    con = tables["contacts"]
+    mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
+                 mu_table=params.friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
+    return _Env(scene=scene, robot=robot, model=model, mesh=tables["mesh"],
+                p_O=np.stack([con["px"], con["py"], con["pz"]], axis=1),
+                n_O=np.stack([con["nx"], con["ny"], con["nz"]], axis=1), r=scene.robot.ball_radius,
+                inertia=np.asarray(tables["summary"]["inertia"]), mp=mp, params=params,
+                sp_margin=float(tables["placements"].meta["params"]["sp_margin"]), _collide=collide)
+
+
+def make_timeline(env: _Env) -> _Timeline:
+    """An empty timeline: both arms at zero joints, off the object."""
+    P = env.params
+    return _Timeline(env.robot, env.r, env.p_O, env.n_O, env.mp.dt, env.scene.object.mass * env.mp.g,
+                     {a: env.robot.arm(a).velocity * P.vel_scale for a in ARMS}, P.acc)
+
+
+def check_tumble(env: _Env, q: dict, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> tuple[str, str]:
+    """Whether :func:`plan_tumble` can do the plan's tumble ``step`` with the arms at joints ``q`` (arm ->
+    (n,)), off the object: ``("ok", "")``, or ``(reason code, why)``. ``pivot plan`` asks this of every
+    tumble it walks (§5.3's motion-level check, lazily), so that this stage does not fail on one."""
+    tl = make_timeline(env)
+    tl.q = {a: np.asarray(q[a], dtype=float).copy() for a in ARMS}
+    try:
+        plan_tumble(env, tl, 0, step, X_from, X_to)
+    except TumbleError as err:
+        return err.code, str(err)
+    except InputError as err:  # the pusher's check disagrees with the graph's: no pusher here
+        return "no_pusher_contact", str(err)
+    return "ok", ""
+
+
 def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict]:
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    con = tables["contacts"]
-    p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
-    n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
-    r = scene.robot.ball_radius
-    summ = tables["summary"]
-    mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
-                 mu_table=params.friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
+    env = make_env(scene, model, tables, robot, params)
+    p_O, n_O, r, mp, inertia = env.p_O, env.n_O, env.r, env.mp, env.inertia
     dt = mp.dt
-    inertia = np.asarray(summ["inertia"])
-    env = _Env(scene=scene, robot=robot, model=model, mesh=tables["mesh"], p_O=p_O, n_O=n_O, r=r, inertia=inertia,
-               mp=mp, params=params, sp_margin=float(tables["placements"].meta["params"]["sp_margin"]))
-    tl = _Timeline(robot, r, p_O, n_O, dt, scene.object.mass * mp.g,
-                   {a: robot.arm(a).velocity * params.vel_scale for a in ARMS}, params.acc)
+    tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
              "tumbles": [], "pivot_table_friction": []}
 
