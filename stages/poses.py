@@ -71,6 +71,10 @@ class Params:
     max_usp_overhang: float = 0.15
     #: Expansions a placement other than the start's and the goal's gets per one of theirs.
     other_share: float = 0.1
+    #: How far from coplanar the hull triangles of one placement face may be (rad): the analysis'
+    #: ``hull_coplanar_deg``. A face's corners lie off its plane by up to about its tangent times the
+    #: face's size, which the goal's pivots (``connect.Params.face_tilt``) must not take for an error.
+    face_tilt: float = np.radians(0.5)
 
 
 @dataclass(frozen=True)
@@ -258,7 +262,7 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     joined = 0
     for i in cand:  # a few dozen closed-form solves
         conn = connect.connect_poses(rows[i]["X"], X_goal, model.vertices[ids], connect.Params(
-            max_angle=params.goal_max_angle))
+            max_angle=params.goal_max_angle, face_tilt=params.face_tilt))
         if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
             continue  # a pivot this small would merge its pose into its parent's
         prev = i

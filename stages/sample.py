@@ -410,9 +410,10 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     model, tables = load_object_model(analysis_dir)
     X0, g0 = placement_pose(scene.start, model, f"{scene.path}: start")
     pl = scene.planner
-    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp,
-                      sp_margin=float(tables["placements"].meta["params"]["sp_margin"]),
-                      corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge)
+    upstream = tables["placements"].meta["params"]
+    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp, sp_margin=float(upstream["sp_margin"]),
+                      corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge,
+                      face_tilt=np.radians(float(upstream["hull_coplanar_deg"])))
     Xg, gg = placement_pose(scene.goal, model, f"{scene.path}: goal")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links),
                        ik_params=IKParams(threads=params.threads, min_chunk=1024))

@@ -181,3 +181,17 @@ def test_held_com_moves_the_com_out_across_the_nearest_edge_of_the_table_contact
     # Past a corner: along the diagonal away from it.
     out = held_com(square, np.array([0.23, 0.24, 0.0]), 0.005)
     np.testing.assert_allclose(out[:2] - [0.23, 0.24], 0.005 * np.array([0.03, 0.04]) / 0.05, atol=1e-12)
+
+
+def test_a_goal_on_an_uneven_base_face_joins_the_lattice():
+    """The goal's pivots start from lattice poses whose support corners lie ~1e-4 m off the table (the
+    face's own unevenness, :func:`tests.conftest.uneven_box`): that is no reason to refuse the scene."""
+    from tests.conftest import uneven_box
+
+    model = box_model(mesh=uneven_box())
+    X0, g = upright(model, xy=(-0.15, 0.0))
+    corners = se3.transform_points(X0, model.vertices[poses.pivot_corners(model, 0.03)[g]])
+    assert 5e-5 < np.abs(corners[:, 2]).max() < 1e-3
+    Xg, _ = upright(model, xy=(0.05, 0.03), yaw=np.radians(10.0))  # off the lattice: pivots must join it
+    ps = poses.sample_poses(model, X0, g, (0.9, 0.6), (), poses.Params(max_poses=20), goal=(Xg, g))
+    assert ps.goal_id >= 0 and ps.status[ps.goal_id] == "ok" and np.any(ps.links[:, 1] == ps.goal_id)
