@@ -16,7 +16,7 @@ the CoM's vertical projection lies inside that polygon by
 ``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at most
 ``max_usp_overhang``, over the table's edge: the object would tip off the table unless one ball holds
 it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). It is rejected as
-``off_table`` (less than ``min_usp_edge`` of contact with the table, or too much overhang),
+``off_table`` (not SP and less than ``min_usp_edge`` of contact with the table, or too much overhang),
 ``unstable`` (USP not allowed) or ``obstacle`` (the object mesh, at the pose or swept by the pivot or
 tumble that reaches it, hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
@@ -150,11 +150,13 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
         contact = table_support(model, X, g, half)
         com = se3.transform_points(X, model.com)
-        if len(contact) < 2 or _extent(contact) < params.min_usp_edge:
+        if len(contact) < 2:
             return "off_table", "USP", -np.inf
         margin = _margin(contact, com[:2])
         if margin >= params.sp_margin:
-            kind = "SP"
+            kind = "SP"  # it stands alone, however small its contact (the duck has stable faces 3 cm wide)
+        elif _extent(contact) < params.min_usp_edge:
+            return "off_table", "USP", -np.inf
         elif not params.usp:
             return "unstable", "USP", margin
         elif -margin > params.max_usp_overhang:

@@ -209,3 +209,12 @@ def test_the_table_contact_of_an_uneven_base_face_is_the_whole_face():
     X, g = upright(model)
     poly = poses.table_support(model, X, g, np.array([0.45, 0.3]))
     assert ConvexHull(poly).volume == pytest.approx(0.3 * 0.2, rel=1e-4)  # 0.3 mm lift over 0.3 m: < 1e-4
+
+
+def test_a_stable_face_smaller_than_min_usp_edge_is_sp_not_off_table():
+    """min_usp_edge asks how much table a USP pose rests on; an object standing alone on a small face
+    (4.2 cm across, the duck has such faces) is SP, not off the table."""
+    model = box_model(size=(0.03, 0.03, 0.02))
+    X, g = upright(model)
+    ps = poses.sample_poses(model, X, g, (0.9, 0.6), (), poses.Params(max_poses=1))
+    assert ps.status[0] == "ok" and ps.support[0] == "SP"
