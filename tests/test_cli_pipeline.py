@@ -64,3 +64,21 @@ def test_bad_scene_is_one_line_exit_2(tmp_path):
     lines = [x for x in r.output.splitlines() if x.strip()]
     assert len(lines) == 1 and "object.mass" in lines[0] and "bad.json" in lines[0]
     assert not (tmp_path / "s").exists()
+
+
+
+def test_sample_accepts_a_mesh_whose_base_is_uneven_by_a_tenth_of_a_millimetre(tmp_path):
+    """tests.conftest.uneven_box: its base corners lie ~1e-4 m off the face's plane; the goal, off the
+    lattice, is joined by pivots from poses whose corners are that far off the table (exit 2 before)."""
+    from tests.conftest import uneven_box
+
+    mesh = tmp_path / "uneven.stl"
+    uneven_box().export(mesh)
+    scene = write_scene(tmp_path, "uneven", **{"object.mesh": str(mesh), "object.mass": 3.0,
+                                               "planner.max_poses": 20, "start.xy": [-0.15, 0.0],
+                                               "start.yaw_deg": 0, "goal.xy": [-0.05, 0.03], "goal.yaw_deg": 10})
+    b = tmp_path / "build"
+    assert invoke("analyze", "--scene", scene, "--out", b / "analysis").exit_code == 0
+    r = invoke("sample", scene, "--analysis", b / "analysis", "--out", b / "sample")
+    assert r.exit_code == 0, r.output
+    assert artifacts.read_json(b / "sample" / "sample.json", "sample")["goal"]["status"] == "ok"
