@@ -148,24 +148,7 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     index: dict[tuple, list[int]] = {}
 
     def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
-        contact = table_support(model, X, g, half)
-        com = se3.transform_points(X, model.com)
-        if len(contact) < 2:
-            return "off_table", "USP", -np.inf
-        margin = _margin(contact, com[:2])
-        if margin >= params.sp_margin:
-            kind = "SP"  # it stands alone, however small its contact (the duck has stable faces 3 cm wide)
-        elif _extent(contact) < params.min_usp_edge:
-            return "off_table", "USP", -np.inf
-        elif not params.usp:
-            return "unstable", "USP", margin
-        elif -margin > params.max_usp_overhang:
-            return "off_table", "USP", margin
-        else:
-            kind = "USP"
-        if collide(X):
-            return "obstacle", kind, margin
-        return "ok", kind, margin
+        return classify_pose(model, X, g, half, collide, params)[:3]
 
     def key_of(X: np.ndarray, g: int) -> tuple[int, float, float, float]:
         com = se3.transform_points(X, model.com)
@@ -234,6 +217,54 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
                 push(j)
     goal_id = -1 if goal is None else _insert_goal(model, corners, rows, add, *goal, params)
     return _to_pose_set(rows, links, goal_id)
+
+
+def classify_pose(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, collide,
+                  params: Params) -> tuple[str, str, float, str]:
+    """Whether the object at ``X_WO (4, 4)`` on placement ``g`` can be a pose (module docstring).
+
+    ``half (2,)`` m is half the table's size, ``collide`` a :func:`_make_object_collision_fn`.
+    Returns ``(status, support, margin, why)``: ``ok`` / ``off_table`` / ``unstable`` / ``obstacle``,
+    ``SP`` / ``USP``, the CoM's margin (m) inside the table contact (``-inf`` without one), and why
+    the pose is refused, in words for a user ("" when ok; an obstacle is named by
+    :func:`describe_pose`).
+    """
+    contact = table_support(model, X, g, half)
+    com = se3.transform_points(X, model.com)
+    if len(contact) < 2:
+        return "off_table", "USP", -np.inf, "its support face is not on the table"
+    margin = _margin(contact, com[:2])
+    extent = _extent(contact)
+    if margin >= params.sp_margin:
+        kind = "SP"  # it stands alone, however small its contact (the duck has stable faces 3 cm wide)
+    elif extent < params.min_usp_edge:
+        return "off_table", "USP", -np.inf, (f"it is over the table's edge with {extent:.3f} m of its support on "
+                                            f"the table (a USP pose needs {params.min_usp_edge:g} m)")
+    elif not params.usp:
+        where = f"{-margin:.3f} m beyond" if margin < 0 else f"only {margin:.3f} m inside"
+        return "unstable", "USP", margin, (f"its CoM is {where} its contact with the table (SP needs "
+                                           f"{params.sp_margin:g} m inside) and the planner does not allow USP")
+    elif -margin > params.max_usp_overhang:
+        return "off_table", "USP", margin, (f"its CoM is {-margin:.3f} m beyond its contact with the table's edge "
+                                            f"(a USP pose allows {params.max_usp_overhang:g} m)")
+    else:
+        kind = "USP"
+    if collide(X):
+        return "obstacle", kind, margin, "it hits an obstacle"
+    return "ok", kind, margin, ""
+
+
+def describe_pose(model: ObjectModel, X: np.ndarray, g: int, table_size, obstacles,
+                  params: Params) -> tuple[str, str]:
+    """``(status, why)`` of one pose as :func:`classify_pose` has them, an obstacle named: "it hits
+    robot:torso_link" (``ObstacleGeometry.name``), so that a scene's start or goal that cannot be a
+    pose is refused with what it hits. ``table_size`` (sx, sy) m; ``obstacles`` as in
+    :func:`sample_poses`."""
+    half = np.asarray(table_size, dtype=float) / 2
+    status, _, _, why = classify_pose(model, X, g, half, _make_object_collision_fn(model, obstacles), params)
+    if status == "obstacle":
+        why = "it hits " + ", ".join(obstacles_hit(model, X, obstacles))
+    return status, why
 
 
 def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> int:
@@ -482,15 +513,29 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
 
 
-def _make_object_collision_fn(model: ObjectModel, obstacles):
-    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
-    if not obstacles:
-        return lambda X: False
+def _object_fcl(model: ObjectModel) -> fcl.CollisionObject:
+    """The object mesh as an fcl collision object (at the identity)."""
     bvh = fcl.BVHModel()
     bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
     bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
     bvh.endModel()
-    obj = fcl.CollisionObject(bvh, fcl.Transform())
+    return fcl.CollisionObject(bvh, fcl.Transform())
+
+
+def obstacles_hit(model: ObjectModel, X: np.ndarray, obstacles) -> list[str]:
+    """Names of the ``obstacles`` (``stages.scene.ObstacleGeometry``) that the object at ``X_WO (4, 4)``
+    overlaps, in their order (fcl, as :func:`_make_object_collision_fn`)."""
+    obj = _object_fcl(model)
+    obj.setTransform(fcl.Transform(X[:3, :3], X[:3, 3]))
+    req = fcl.CollisionRequest()
+    return [ob.name for ob in obstacles if fcl.collide(obj, fcl_object(ob), req, fcl.CollisionResult())]
+
+
+def _make_object_collision_fn(model: ObjectModel, obstacles):
+    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
+    if not obstacles:
+        return lambda X: False
+    obj = _object_fcl(model)
     bodies = [fcl_object(ob) for ob in obstacles]
     req = fcl.CollisionRequest()
 

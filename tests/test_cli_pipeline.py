@@ -66,6 +66,23 @@ def test_bad_scene_is_one_line_exit_2(tmp_path):
     assert not (tmp_path / "s").exists()
 
 
+def test_a_start_in_the_robots_torso_or_a_goal_in_an_obstacle_is_one_line_exit_2_naming_it(tmp_path):
+    # The torso reaches over the table to x = -0.375 m: the piano's back at x = -0.36 - 0.21 is in it.
+    # The goal's CoM is clear of the box's footprint (the scene accepts it) but the piano overlaps the box.
+    box = {"type": "box", "size": [0.1, 0.1, 0.1], "xyz": [0.1, 0.25, 0.05]}
+    for name, changes, hit in (("torso", {"start.xy": [-0.36, 0.0]}, "start: the start pose (placement 39) is "
+                                "obstacle: it hits robot:torso_link"),
+                               ("boxed", {"obstacles": [box], "goal.xy": [0.1, 0.0]}, "goal: the goal pose "
+                                "(placement 39) is obstacle: it hits obstacles[0]")):
+        scene = write_scene(tmp_path, name, **{"planner.max_poses": 20, **changes})
+        b = tmp_path / name
+        assert invoke("analyze", "--scene", scene, "--out", b / "analysis").exit_code == 0
+        r = invoke("sample", scene, "--analysis", b / "analysis", "--out", b / "sample")
+        assert r.exit_code == 2
+        lines = [x for x in r.output.splitlines() if x.strip()]
+        assert len(lines) == 1 and f"{name}.json" in lines[0] and hit in lines[0], r.output
+        assert not (b / "sample").exists()
+
 
 def test_sample_accepts_a_mesh_whose_base_is_uneven_by_a_tenth_of_a_millimetre(tmp_path):
     """tests.conftest.uneven_box: its base corners lie ~1e-4 m off the face's plane; the goal, off the

@@ -218,3 +218,23 @@ def test_a_stable_face_smaller_than_min_usp_edge_is_sp_not_off_table():
     X, g = upright(model)
     ps = poses.sample_poses(model, X, g, (0.9, 0.6), (), poses.Params(max_poses=1))
     assert ps.status[0] == "ok" and ps.support[0] == "SP"
+
+
+def test_describe_pose_names_the_obstacle_a_pose_hits_and_why_it_is_off_the_table():
+    model = box_model()  # footprint 0.2 (x) x 0.3 (y), 0.4 high
+    far = ObstacleGeometry(name="obstacles[0]", kind="box", X_WOb=se3.make_transform(np.eye(3), [0.0, 0.5, 0.1]),
+                           size=(0.1, 0.1, 0.2))
+    torso = ObstacleGeometry(name="robot:torso_link", kind="box", X_WOb=se3.make_transform(np.eye(3), [-0.2, 0, 0.2]),
+                             size=(0.1, 0.4, 0.4))  # reaches x = -0.15
+    X, g = upright(model, xy=(-0.02, 0.0))  # the box's back face at x = -0.12: clear of both
+    assert poses.describe_pose(model, X, g, (0.9, 0.6), (far, torso), poses.Params()) == ("ok", "")
+    X, g = upright(model, xy=(-0.1, 0.0))  # back face at x = -0.2: 5 cm into the torso only
+    assert poses.describe_pose(model, X, g, (0.9, 0.6), (far, torso), poses.Params()) == (
+        "obstacle", "it hits robot:torso_link")
+    # CoM 3 cm past the table's edge at x = 0.3, USP not allowed; then 20 cm past it, nothing on the table.
+    X, g = upright(model, xy=(0.33, 0.0))
+    status, why = poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params(usp=False))
+    assert status == "unstable" and "0.030 m beyond its contact" in why and "USP" in why
+    X, g = upright(model, xy=(0.5, 0.0))
+    assert poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params()) == (
+        "off_table", "its support face is not on the table")
