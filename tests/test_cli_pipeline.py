@@ -54,7 +54,11 @@ def test_plan_without_a_path_exits_1_and_says_why(tmp_path):
     r = invoke("plan", scene, "--build", b, "--no-tumble", "--out", b / "p.json")
     assert r.exit_code == 1
     plan = json.loads((b / "p.json").read_text())
-    assert plan["status"] == "infeasible" and plan["reason"]
+    assert plan["status"] == "infeasible" and plan["diagnosis"]["cause"] == "no_tumble_to_goal_face"
+    assert plan["reason"] == "no path in the graph: no tumble reaches the goal's face"
+    # One line: the reason, then the counts that say what to change.
+    lines = [x for x in r.output.splitlines() if x.strip()]
+    assert len(lines) == 1 and plan["reason"] in lines[0] and "tumbling switched off" in lines[0], r.output
 
 
 def test_bad_scene_is_one_line_exit_2(tmp_path):
