@@ -62,7 +62,7 @@ VARIANT ?=
 R := $(B)/$(if $(VARIANT),$(VARIANT),full)
 PLAN_FLAGS := $(if $(VARIANT),--$(VARIANT),)
 
-PLAN_CODE := stages/plan.py stages/transit.py stages/connect.py $(GRAPH_CODE)
+PLAN_CODE := stages/plan.py stages/diagnosis.py stages/transit.py stages/connect.py $(GRAPH_CODE)
 # pivot plan exits 1 when no plan exists; plan.json still records why, so Make keeps it.
 $(R)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
 	$(PIVOT) plan $(SCENE_FILE) --build $(B) --out $@ $(PLAN_FLAGS) || [ $$? -eq 1 ]

@@ -48,7 +48,8 @@ def plan(
         p = plan_stage.run(scene, b / "analysis", b / "sample", b / "graph", out, params, producer=f"plan {scene}")
     removed = len(p["log"])
     if p["status"] == "infeasible":
-        typer.echo(f"pivot: no plan for {scene.stem}: {p['reason']} ({removed} edges removed) -> {out}", err=True)
+        why = f"{p['reason']}; {p['diagnosis']['detail']}" if "diagnosis" in p else p["reason"]
+        typer.echo(f"pivot: no plan for {scene.stem}: {why} ({removed} edges removed) -> {out}", err=True)
         raise typer.Exit(code=1)
     c = p["counts"]
     msg = (f"{scene.stem}: {p['status']} plan, cost {p['cost']:.2f}: {c['pivot']} pivots, {c['tumble']} tumbles, "

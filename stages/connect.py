@@ -67,7 +67,11 @@ class Params:
     ``max_angle`` bounds each pivot's |angle|; ``max_pivots`` (1 to 3) the sequence length; ``tol_xy``
     (m) and ``tol_yaw`` (rad) how close the replayed end must be to the goal (and, in
     :func:`connect_poses`, how planar the relative motion must be); ``alternate`` forbids two consecutive
-    pivots about the same corner.
+    pivots about the same corner. ``face_tilt`` (rad): in :func:`connect_poses` the support corners may
+    lie off the table by ``tol_xy + tan(face_tilt) * spread`` (m, ``spread`` the largest distance between
+    two corners), since a placement face merges hull triangles whose normals differ by up to the
+    analysis' ``hull_coplanar_deg`` and its corners are coplanar only to about that slope (the duck's
+    16-corner base: 0.2 mm over 0.25 m); the pivots are about verticals, so they stay exact.
     """
 
     max_angle: float = np.radians(30.0)
@@ -75,6 +79,7 @@ class Params:
     tol_xy: float = 1e-6
     tol_yaw: float = 1e-8
     alternate: bool = True
+    face_tilt: float = np.radians(0.5)
 
 
 @dataclass(frozen=True)
@@ -250,6 +255,8 @@ def _check(params: Params, corners: np.ndarray, poses: tuple[np.ndarray, ...]) -
         raise InputError(f"connect: max_pivots must be 1, 2 or 3, got {p.max_pivots}")
     if not (p.tol_xy > 0.0 and p.tol_yaw > 0.0):
         raise InputError(f"connect: tolerances must be positive, got tol_xy={p.tol_xy}, tol_yaw={p.tol_yaw}")
+    if not (0.0 <= p.face_tilt < np.pi / 2):
+        raise InputError(f"connect: face_tilt must be in [0, pi/2) rad, got {p.face_tilt}")
     for name, x, shape in poses:
         if x.shape != shape or not np.all(np.isfinite(x)):
             raise InputError(f"connect: {name} must be a finite {shape} array, got shape {x.shape}")
@@ -349,6 +356,16 @@ def planar_motion(X_a: np.ndarray, X_b: np.ndarray, params: Params = Params()) -
     return np.array([X_T[0, 3], X_T[1, 3], se3.yaw_of(R)])
 
 
+def on_table_tolerance(corners_O: np.ndarray, params: Params = Params()) -> float:
+    """How far (m) support corners ``corners_O (k, 3)`` (m, O) may lie off the table and still rest on it:
+    ``tol_xy + tan(face_tilt) * spread``, ``spread`` the largest distance between two corners. It scales
+    with the face, so that a mesh's own unevenness (hull triangles merged within ``face_tilt``) is
+    not taken for a pose off the table."""
+    c = np.asarray(corners_O, dtype=float)
+    spread = float(np.max(np.linalg.norm(c[:, None] - c[None], axis=-1))) if len(c) else 0.0
+    return params.tol_xy + np.tan(params.face_tilt) * spread
+
+
 def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
                   params: Params = Params()) -> Connection:
     """Shortest pivot sequence between two world poses of the object on the same placement.
@@ -359,7 +376,8 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         Object poses ``X_WO`` (m); ``X_b = X_WT @ X_a`` with ``X_WT`` a planar rigid motion, else the
         answer is ``ok=False, reason="different_placement"``.
     corners_O : (k, 3) float
-        Support corners ``p_OC`` in the object frame (m); at ``X_a`` they must lie on the table (z = 0).
+        Support corners ``p_OC`` in the object frame (m); at ``X_a`` they must lie on the table (z = 0)
+        within ``tol_xy + tan(face_tilt) * spread`` (:class:`Params`): a hull face's own flatness.
     params : Params
 
     Returns
@@ -376,9 +394,11 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         raise InputError(f"connect_poses: corners_O must be (k, 3), got shape {corners_O.shape}")
     p_WC = se3.transform_points(X_a, corners_O)  # (k, 3)
     off = np.abs(p_WC[:, 2])
-    if np.any(off > params.tol_xy):
+    allowed = on_table_tolerance(corners_O, params)
+    if np.any(off > allowed):
         raise InputError(f"connect_poses: corner {int(np.argmax(off))} is {off.max():.3g} m off the table "
-                         "(z = 0) at X_a; pivot corners must rest on the table")
+                         f"(z = 0) at X_a, more than the face's flatness {allowed:.3g} m; pivot corners must rest "
+                         "on the table")
     pose_b = planar_motion(X_a, X_b, params)
     if pose_b is None:
         return Connection(False, np.zeros(0, dtype=int), np.zeros(0), X_a[None].copy(), np.inf, DIFFERENT_PLACEMENT)

@@ -24,7 +24,10 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   contact and the pusher to its own.
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
-are logged, and the search runs again, until a path passes or none is left. A check's outcome is kept
+are logged, and the search runs again, until a path passes or none is left. With no path (before or
+after backtracking) the plan's ``reason`` names the cause and ``diagnosis`` counts what failed
+(``stages.diagnosis``: no grasp at the start or goal, the goal off the lattice, no tumble onto its
+face, the pivots, tumbles or regrasps that lead on rejected, and why). A check's outcome is kept
 by edge and exact robot state, so the next path re-walks the prefix it shares with the last one
 without re-planning it (the result is the same, bit for bit). A pivot's MPC check depends on its edge
 alone, not on the robot's state (nor does the state after the pivot depend on it), so its outcome is
@@ -48,7 +51,7 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from stages import artifacts, mpc, se3, transit
+from stages import artifacts, diagnosis, mpc, se3, transit
 from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, pusher_motion
 from stages.objectmodel import load_object_model
@@ -117,6 +120,8 @@ class _Context:
         sd, gd = Path(sample_dir), Path(graph_dir)
         self.poses = artifacts.read_table(sd / "poses.parquet", "poses")
         self.grasps = artifacts.read_table(sd / "grasps.parquet", "grasps")
+        self.links = artifacts.read_table(sd / "pose_links.parquet", "pose_links")
+        self.rejects = artifacts.read_table(sd / "grasp_rejects.parquet", "grasp_rejects")
         self.sample = artifacts.read_json(sd / "sample.json", "sample")
         self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
@@ -135,7 +140,8 @@ class _Context:
         }
         self.inputs = {"scene": scene.path, "nodes": gd / "nodes.parquet", "edges": gd / "edges.parquet",
                        "catches": gd / "catches.parquet",
-                       "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet"}
+                       "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet",
+                       "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet"}
         self._tumble_env = None
 
     def contact(self, grasp: int, arm: str) -> int:
@@ -151,6 +157,22 @@ class _Context:
         return trajectory.check_tumble(self._tumble_env, q, step, Xa, Xb)
 
 
+def ablated_edges(nodes, edges, params: Params, start: int, goal: int) -> np.ndarray:
+    """``(E,)`` bool: the edges the ablations drop (``no_tumble``: tumbles; ``no_usp``: edges at a USP
+    node; ``no_regrasp``: regrasps other than the first grasp out of the ``start`` free node and the
+    release into the ``goal``'s)."""
+    usp = nodes["support"] == "USP"
+    a, b, prim = edges["node_a"], edges["node_b"], edges["primitive"]
+    out = np.zeros(len(prim), bool)
+    if params.no_tumble:
+        out |= prim == "tumble"
+    if params.no_usp:
+        out |= usp[a] | usp[b]
+    if params.no_regrasp:
+        out |= (prim == "regrasp") & ~np.isin(a, [start, goal]) & ~np.isin(b, [start, goal])
+    return out
+
+
 def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, int]:
     """The DiGraph of ok edges after the ablations, with the start and goal free nodes."""
     nodes, edges = ctx.nodes, ctx.edges
@@ -160,19 +182,11 @@ def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, 
     goal = free.get(int(ctx.sample["goal"]["pose_id"]), -1)
     G = nx.DiGraph()
     G.add_nodes_from(nodes["node_id"].tolist())
-    usp = nodes["support"] == "USP"
-    ok = np.flatnonzero(edges["status"] == "ok")
-    a_all, b_all = edges["node_a"][ok], edges["node_b"][ok]
-    keep = np.ones(len(ok), bool)
-    if params.no_tumble:
-        keep &= edges["primitive"][ok] != "tumble"
-    if params.no_usp:
-        keep &= ~(usp[a_all] | usp[b_all])
+    ok = np.flatnonzero((edges["status"] == "ok") & ~ablated_edges(nodes, edges, params, start, goal))
     arcs = []  # (a, b, data) in edge order, both ways for undirected edges
-    for i, a, b, prim, weight, directed in zip(ok[keep].tolist(), a_all[keep].tolist(), b_all[keep].tolist(),
-                                               edges["primitive"][ok[keep]].tolist(),
-                                               edges["weight"][ok[keep]].tolist(),
-                                               edges["directed"][ok[keep]].tolist(), strict=True):
+    for i, a, b, prim, weight, directed in zip(ok.tolist(), edges["node_a"][ok].tolist(), edges["node_b"][ok].tolist(),
+                                               edges["primitive"][ok].tolist(), edges["weight"][ok].tolist(),
+                                               edges["directed"][ok].tolist(), strict=True):
         data = {"weight": weight, "edge_id": i, "primitive": prim}
         if params.no_regrasp and prim == "regrasp":
             # Only the first grasp (out of the start's free node) and the final release (into the goal's).
@@ -549,13 +563,10 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
     G, start, goal = build_search_graph(ctx, params)
     log: list[dict] = []
     partial = None
-    if start < 0:
-        return {"status": "infeasible", "reason": "start pose has no free node (not SP)", "steps": [], "log": log}
     target = goal
-    if goal < 0 or not nx.has_path(G, start, goal):
-        if not params.no_regrasp or goal < 0:
-            reason = "goal not reached by the pose sampler" if goal < 0 else "no path in the graph"
-            return {"status": "infeasible", "reason": reason, "steps": [], "log": log}
+    if start < 0 or goal < 0 or not nx.has_path(G, start, goal):
+        if not params.no_regrasp or start < 0 or goal < 0:
+            return _infeasible(ctx, params, G, start, goal, log, "no path in the graph")
         target, partial = _nearest_reachable(ctx, G, start)
     home = np.zeros(ctx.robot.arm("left").dof)
     removals = 0
@@ -567,7 +578,7 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
             if params.no_regrasp and target != start:  # backtracking cut the way: the nearest reachable again
                 target, partial = _nearest_reachable(ctx, G, start)
                 continue
-            return {"status": "infeasible", "reason": "no path left after backtracking", "steps": [], "log": log}
+            return _infeasible(ctx, params, G, start, goal, log, "no path left after backtracking")
         state = _State({"left": home.copy(), "right": home.copy()}, {"left": None, "right": None},
                        ctx.X_WO[int(ctx.nodes["pose_id"][start])])
         steps = []
@@ -621,6 +632,18 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
         if removals >= params.max_removals:
             return {"status": "infeasible", "reason": f"gave up after {removals} removed edges", "steps": [],
                     "log": log}
+
+
+def _infeasible(ctx: _Context, params: Params, G: nx.DiGraph, start: int, goal: int, log: list[dict],
+                prefix: str) -> dict:
+    """The infeasible plan: ``reason`` is ``prefix`` and the diagnosed cause's fixed phrase (a stable
+    reason code), ``diagnosis`` the cause with its counts (``stages.diagnosis``)."""
+    t = diagnosis.Tables(ctx.nodes, ctx.edges, ctx.poses, ctx.links, ctx.rejects, int(ctx.sample["goal"]["pose_id"]))
+    removed = {int(r["edge_id"]): str(r["reason"]) for r in log}
+    d = diagnosis.diagnose(t, G, start, goal, ablated_edges(ctx.nodes, ctx.edges, params, start, goal), removed,
+                           no_tumble=params.no_tumble, no_usp=params.no_usp)
+    return {"status": "infeasible", "reason": f"{prefix}: {diagnosis.REASONS[d['cause']]}", "diagnosis": d,
+            "steps": [], "log": log}
 
 
 def _nearest_reachable(ctx: _Context, G: nx.DiGraph, start: int) -> tuple[int, dict]:

@@ -16,7 +16,7 @@ the CoM's vertical projection lies inside that polygon by
 ``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at most
 ``max_usp_overhang``, over the table's edge: the object would tip off the table unless one ball holds
 it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). It is rejected as
-``off_table`` (less than ``min_usp_edge`` of contact with the table, or too much overhang),
+``off_table`` (not SP and less than ``min_usp_edge`` of contact with the table, or too much overhang),
 ``unstable`` (USP not allowed) or ``obstacle`` (the object mesh, at the pose or swept by the pivot or
 tumble that reaches it, hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
@@ -65,10 +65,11 @@ class Params:
     goal_candidates: int = 40
     goal_connections: int = 6
     goal_max_angle: float = np.radians(30.0)
-    #: A lattice grown from the goal as well (this many kept poses), joined to the start's by up to
-    #: ``tree_joins`` closed-form pivot sequences between the ``tree_candidates`` nearest pairs (a
-    #: heading difference weighs ``yaw_weight`` m per rad); 0 poses: the start's lattice alone.
-    goal_tree_poses: int = 100
+    #: A lattice grown from the goal as well (``goal_tree_share`` of ``max_poses`` kept poses more),
+    #: joined to the start's by up to ``tree_joins`` closed-form pivot sequences between the
+    #: ``tree_candidates`` nearest pairs (a heading difference weighs ``yaw_weight`` m per rad); 0:
+    #: the start's lattice alone.
+    goal_tree_share: float = 0.25
     tree_joins: int = 12
     tree_candidates: int = 80
     yaw_weight: float = 0.2
@@ -78,6 +79,10 @@ class Params:
     max_usp_overhang: float = 0.15
     #: Expansions a placement other than the start's and the goal's gets per one of theirs.
     other_share: float = 0.1
+    #: How far from coplanar the hull triangles of one placement face may be (rad): the analysis'
+    #: ``hull_coplanar_deg``. A face's corners lie off its plane by up to about its tangent times the
+    #: face's size, which the goal's pivots (``connect.Params.face_tilt``) must not take for an error.
+    face_tilt: float = np.radians(0.5)
 
 
 @dataclass(frozen=True)
@@ -151,22 +156,7 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     index: dict[tuple, list[int]] = {}
 
     def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
-        contact = table_support(model, X, g, half)
-        com = se3.transform_points(X, model.com)
-        if len(contact) < 2 or _extent(contact) < params.min_usp_edge:
-            return "off_table", "USP", -np.inf
-        margin = _margin(contact, com[:2])
-        if margin >= params.sp_margin:
-            kind = "SP"
-        elif not params.usp:
-            return "unstable", "USP", margin
-        elif -margin > params.max_usp_overhang:
-            return "off_table", "USP", margin
-        else:
-            kind = "USP"
-        if collide(X):
-            return "obstacle", kind, margin
-        return "ok", kind, margin
+        return classify_pose(model, X, g, half, collide, params)[:3]
 
     def key_of(X: np.ndarray, g: int) -> tuple[int, float, float, float]:
         com = se3.transform_points(X, model.com)
@@ -241,11 +231,59 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     if goal is None:
         return _to_pose_set(rows, links)
     goal_id = _insert_goal(model, corners, rows, add, *goal, params)
-    if goal_id >= 0 and params.goal_tree_poses > 0:
+    if goal_id >= 0 and params.goal_tree_share > 0:
         n_start = len(rows)
-        grow(goal_id, params.goal_tree_poses)
+        grow(goal_id, int(np.ceil(params.goal_tree_share * params.max_poses)))
         _join_trees(model, corners, rows, add, n_start, goal_id, params)
     return _to_pose_set(rows, links, goal_id)
+
+
+def classify_pose(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, collide,
+                  params: Params) -> tuple[str, str, float, str]:
+    """Whether the object at ``X_WO (4, 4)`` on placement ``g`` can be a pose (module docstring).
+
+    ``half (2,)`` m is half the table's size, ``collide`` a :func:`_make_object_collision_fn`.
+    Returns ``(status, support, margin, why)``: ``ok`` / ``off_table`` / ``unstable`` / ``obstacle``,
+    ``SP`` / ``USP``, the CoM's margin (m) inside the table contact (``-inf`` without one), and why
+    the pose is refused, in words for a user ("" when ok; an obstacle is named by
+    :func:`describe_pose`).
+    """
+    contact = table_support(model, X, g, half)
+    com = se3.transform_points(X, model.com)
+    if len(contact) < 2:
+        return "off_table", "USP", -np.inf, "its support face is not on the table"
+    margin = _margin(contact, com[:2])
+    extent = _extent(contact)
+    if margin >= params.sp_margin:
+        kind = "SP"  # it stands alone, however small its contact (the duck has stable faces 3 cm wide)
+    elif extent < params.min_usp_edge:
+        return "off_table", "USP", -np.inf, (f"it is over the table's edge with {extent:.3f} m of its support on "
+                                            f"the table (a USP pose needs {params.min_usp_edge:g} m)")
+    elif not params.usp:
+        where = f"{-margin:.3f} m beyond" if margin < 0 else f"only {margin:.3f} m inside"
+        return "unstable", "USP", margin, (f"its CoM is {where} its contact with the table (SP needs "
+                                           f"{params.sp_margin:g} m inside) and the planner does not allow USP")
+    elif -margin > params.max_usp_overhang:
+        return "off_table", "USP", margin, (f"its CoM is {-margin:.3f} m beyond its contact with the table's edge "
+                                            f"(a USP pose allows {params.max_usp_overhang:g} m)")
+    else:
+        kind = "USP"
+    if collide(X):
+        return "obstacle", kind, margin, "it hits an obstacle"
+    return "ok", kind, margin, ""
+
+
+def describe_pose(model: ObjectModel, X: np.ndarray, g: int, table_size, obstacles,
+                  params: Params) -> tuple[str, str]:
+    """``(status, why)`` of one pose as :func:`classify_pose` has them, an obstacle named: "it hits
+    robot:torso_link" (``ObstacleGeometry.name``), so that a scene's start or goal that cannot be a
+    pose is refused with what it hits. ``table_size`` (sx, sy) m; ``obstacles`` as in
+    :func:`sample_poses`."""
+    half = np.asarray(table_size, dtype=float) / 2
+    status, _, _, why = classify_pose(model, X, g, half, _make_object_collision_fn(model, obstacles), params)
+    if status == "obstacle":
+        why = "it hits " + ", ".join(obstacles_hit(model, X, obstacles))
+    return status, why
 
 
 def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> int:
@@ -315,7 +353,7 @@ def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params
     none, or when a pivot is too small to be kept apart from its parent)."""
     ids = corners[g]
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
-        max_angle=params.goal_max_angle))
+        max_angle=params.goal_max_angle, face_tilt=params.face_tilt))
     if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
         return i
     prev = i
@@ -331,10 +369,14 @@ def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params
 def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = 1e-4) -> np.ndarray:
     """Where the object at ``X`` on placement ``g`` touches the table, ``(k, 2)`` m, W: the convex
     hull of the mesh's triangles that lie in the support plane (within ``tol`` m), each clipped to the
-    table top (the table's edge cuts them when the object overhangs); an object that touches the
-    plane at corners only (no triangle in it) touches it at those of its support corners that are on
-    the table. Not the support face's hull polygon clipped: a piano on two feet with one foot off the
-    table stands on the other foot alone, not on the part of the polygon between them.
+    table top (the table's edge cuts them when the object overhangs), and of the support corners (the
+    placement's hull face vertices) that are on the table. Not the support face's hull polygon
+    clipped: a piano on two feet with one foot off the table stands on the other foot alone, not on
+    the part of the polygon between them.
+
+    The corners count whatever ``tol``: a hull face merges triangles within the analysis'
+    ``hull_coplanar_deg``, so on an organic mesh its corners lie up to ~0.2 mm off its mean plane and
+    the triangles between them miss ``tol`` (the bunny's base kept 70 % of its area without them).
 
     The object rests on that polygon; its CoM projection inside it is SP, outside it USP (the object
     tips over the polygon's edge unless a ball holds it, §5.1, Fig. 14).
@@ -342,13 +384,14 @@ def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, t
     Xp = model.X_TO[g]
     z = model.mesh_vertices @ Xp[2, :3] + Xp[2, 3]
     tri = model.mesh_faces[np.all(np.abs(z[model.mesh_faces]) < tol, axis=1)]
+    corners = se3.transform_points(X, model.vertices[np.asarray(model.support[g], dtype=np.int64)])[:, :2]
+    corners = corners[np.all(np.abs(corners) <= half, axis=1)]
     if len(tri) == 0:
-        p = se3.transform_points(X, model.vertices[np.asarray(model.support[g], dtype=np.int64)])[:, :2]
-        return _convex_hull_2d(p[np.all(np.abs(p) <= half, axis=1)]).reshape(-1, 2)
+        return _convex_hull_2d(corners).reshape(-1, 2)
     V = se3.transform_points(X, model.mesh_vertices[tri])[..., :2]                  # (n, 3, 2)
     inside = np.all(np.abs(V) <= half, axis=2)                                      # (n, 3)
     beyond = np.any(np.all(V > half, axis=1) | np.all(V < -half, axis=1), axis=1)  # all past one side
-    pieces = [V[inside.all(axis=1)].reshape(-1, 2)]
+    pieces = [corners, V[inside.all(axis=1)].reshape(-1, 2)]
     for poly in V[~beyond & ~inside.all(axis=1)]:  # only those the table's edge may cut
         for axis in (0, 1):  # Sutherland–Hodgman against the four table sides
             for sign in (1.0, -1.0):
@@ -524,15 +567,29 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> float:
     return float(a[0] * b[1] - a[1] * b[0])
 
 
-def _make_object_collision_fn(model: ObjectModel, obstacles):
-    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
-    if not obstacles:
-        return lambda X: False
+def _object_fcl(model: ObjectModel) -> fcl.CollisionObject:
+    """The object mesh as an fcl collision object (at the identity)."""
     bvh = fcl.BVHModel()
     bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
     bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
     bvh.endModel()
-    obj = fcl.CollisionObject(bvh, fcl.Transform())
+    return fcl.CollisionObject(bvh, fcl.Transform())
+
+
+def obstacles_hit(model: ObjectModel, X: np.ndarray, obstacles) -> list[str]:
+    """Names of the ``obstacles`` (``stages.scene.ObstacleGeometry``) that the object at ``X_WO (4, 4)``
+    overlaps, in their order (fcl, as :func:`_make_object_collision_fn`)."""
+    obj = _object_fcl(model)
+    obj.setTransform(fcl.Transform(X[:3, :3], X[:3, 3]))
+    req = fcl.CollisionRequest()
+    return [ob.name for ob in obstacles if fcl.collide(obj, fcl_object(ob), req, fcl.CollisionResult())]
+
+
+def _make_object_collision_fn(model: ObjectModel, obstacles):
+    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
+    if not obstacles:
+        return lambda X: False
+    obj = _object_fcl(model)
     bodies = [fcl_object(ob) for ob in obstacles]
     req = fcl.CollisionRequest()
 

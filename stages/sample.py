@@ -12,6 +12,9 @@ Reads the scene and the analysis; writes
 - ``grasp_rejects.parquet``: every refused (pose, pair) candidate with its reason code,
 - ``sample.json``: counts per status and reason.
 
+A start or goal that cannot be a pose (``poses.describe_pose``: off the table's edge, unstable, or
+in an obstacle or the robot's trunk) is bad input: an ``InputError`` that names what it hits.
+
 Grasp refinement, cheapest test first, all batched over the (pose, pair) candidates:
 
 1. ``eef_under_object``: a contact whose outward normal points down (the ball would be under the
@@ -410,16 +413,19 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     model, tables = load_object_model(analysis_dir)
     X0, g0 = placement_pose(scene.start, model, f"{scene.path}: start")
     pl = scene.planner
-    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp,
-                      sp_margin=float(tables["placements"].meta["params"]["sp_margin"]),
-                      corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge)
+    upstream = tables["placements"].meta["params"]
+    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp, sp_margin=float(upstream["sp_margin"]),
+                      corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge,
+                      face_tilt=np.radians(float(upstream["hull_coplanar_deg"])))
     Xg, gg = placement_pose(scene.goal, model, f"{scene.path}: goal")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links),
                        ik_params=IKParams(threads=params.threads, min_chunk=1024))
     obstacles = list(scene.obstacle_geometries()) + trunk_obstacles(robot)
+    for where, X, g in (("start", X0, g0), ("goal", Xg, gg)):  # bad input, with what it hits
+        status, why = poses.describe_pose(model, X, g, scene.table.size, obstacles, pp)
+        if status != "ok":
+            raise InputError(f"{scene.path}: {where}: the {where} pose (placement {g}) is {status}: {why}")
     ps = poses.sample_poses(model, X0, g0, scene.table.size, obstacles, pp, goal=(Xg, gg))
-    if ps.status[0] != "ok":
-        raise InputError(f"{scene.path}: start: the start pose is {ps.status[0]} (placement {g0})")
     t1 = time.perf_counter()
     # Robot set-up, before the refinement: self-collision pairs and IK seed libraries.
     collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads)

@@ -29,6 +29,17 @@ def l_prism(depth: float = 0.2) -> trimesh.Trimesh:
     return m
 
 
+def uneven_box(size=(0.3, 0.2, 0.25), lift: float = 3e-4) -> trimesh.Trimesh:
+    """A box whose faces are split once (each into four triangles) and whose bottom corner at (+x, +y)
+    is lifted by ``lift`` m: its hull's bottom face merges triangles 0.1 deg apart (within the
+    analysis' 0.5 deg), so its corners lie ~1e-4 m off the face's mean plane, as on organic meshes."""
+    m = trimesh.creation.box(size)
+    v, f = trimesh.remesh.subdivide(m.vertices, m.faces)
+    corner = np.all(np.isclose(v, np.array(size) * [0.5, 0.5, -0.5]), axis=1)
+    v[corner, 2] += lift
+    return trimesh.Trimesh(v, f, process=True)
+
+
 @pytest.fixture
 def box_path(tmp_path) -> Path:
     p = tmp_path / "box.stl"

@@ -272,3 +272,26 @@ def test_bad_input_raises_input_error():
         connect.connect_planar(np.zeros(3), np.ones(3), RECT, connect.Params(max_pivots=4))
     with pytest.raises(InputError, match="pose_b"):
         connect.connect_planar(np.zeros(3), np.ones(2), RECT, P)
+
+
+def test_corners_as_uneven_as_a_merged_hull_face_connect_and_far_off_ones_are_refused():
+    # A placement face merges hull triangles up to 0.5 deg apart, so its corners lie off its plane by up
+    # to tan(0.5 deg) x its spread (0.465 m here: 4.1 mm); organic meshes measured 0.2 mm. Pivots are
+    # about verticals, so corners 0.1 mm off reach the same end pose; 1 cm off (2 % of the face) is not a
+    # placement of that face at all.
+    X_a, corners_O = lying_box()
+    X_b = pivot_3d(X_a, corners_O, [0, 2], [0.3, -0.2])
+    uneven = corners_O + np.array([[0, 1e-4, 0], [0, -1e-4, 0], [0, 1e-4, 0], [0, -1e-4, 0]])  # y_O is up
+    c = connect.connect_poses(X_a, X_b, uneven, P)
+    assert c.ok
+    np.testing.assert_allclose(c.poses[-1], X_b, atol=TOL_XY)
+    assert connect.on_table_tolerance(corners_O, P) == pytest.approx(1e-6 + np.tan(np.radians(0.5)) * 0.465, rel=1e-3)
+    with pytest.raises(InputError, match="off the table"):
+        connect.connect_poses(X_a, X_b, corners_O + np.array([[0, 0.01, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]]), P)
+    # The tolerance scales with the face: 1 mm is within a 0.465 m face's flatness, not a 4.65 cm one's.
+    one_mm = np.array([[0, 1e-3, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    assert connect.connect_poses(X_a, X_a, corners_O + one_mm, P).ok
+    small = corners_O * 0.1 + [0.0, -0.0675, 0.0]  # the same box a tenth the size, still on y = -0.075
+    assert connect.connect_poses(X_a, X_a, small, P).ok
+    with pytest.raises(InputError, match="off the table"):
+        connect.connect_poses(X_a, X_a, small + one_mm, P)

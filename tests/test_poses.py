@@ -198,12 +198,69 @@ def test_a_goal_the_start_lattice_cannot_join_is_reached_by_a_lattice_grown_from
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
-    alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_poses=0),
+    alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_share=0),
                                goal=(Xg, g))
     assert not _pose_graph_connects(alone)
-    both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_poses=60),
+    both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_share=2),
                               goal=(Xg, g))
     assert _pose_graph_connects(both)
     assert np.array_equal(both.X_WO[: len(alone.X_WO)], alone.X_WO)  # the start's lattice is unchanged
     for a, b in both.links:  # every join is an exact pivot about a vertex that stays on the table
         assert both.status[a] == "ok" and both.status[b] == "ok"
+
+
+def test_a_goal_on_an_uneven_base_face_joins_the_lattice():
+    """The goal's pivots start from lattice poses whose support corners lie ~1e-4 m off the table (the
+    face's own unevenness, :func:`tests.conftest.uneven_box`): that is no reason to refuse the scene."""
+    from tests.conftest import uneven_box
+
+    model = box_model(mesh=uneven_box())
+    X0, g = upright(model, xy=(-0.15, 0.0))
+    corners = se3.transform_points(X0, model.vertices[poses.pivot_corners(model, 0.03)[g]])
+    assert 5e-5 < np.abs(corners[:, 2]).max() < 1e-3
+    Xg, _ = upright(model, xy=(0.05, 0.03), yaw=np.radians(10.0))  # off the lattice: pivots must join it
+    ps = poses.sample_poses(model, X0, g, (0.9, 0.6), (), poses.Params(max_poses=20), goal=(Xg, g))
+    assert ps.goal_id >= 0 and ps.status[ps.goal_id] == "ok" and np.any(ps.links[:, 1] == ps.goal_id)
+
+
+def test_the_table_contact_of_an_uneven_base_face_is_the_whole_face():
+    # The lifted corner's triangles lie 0.3 mm off the support plane, beyond table_support's 0.1 mm: the
+    # face's corners still touch the table, so the contact is the whole 0.3 x 0.2 m face, as the analysis
+    # has it (without the corners it was 7/8 of it, and the CoM margin shrank with it).
+    from scipy.spatial import ConvexHull
+
+    from tests.conftest import uneven_box
+
+    model = box_model(mesh=uneven_box())
+    X, g = upright(model)
+    poly = poses.table_support(model, X, g, np.array([0.45, 0.3]))
+    assert ConvexHull(poly).volume == pytest.approx(0.3 * 0.2, rel=1e-4)  # 0.3 mm lift over 0.3 m: < 1e-4
+
+
+def test_a_stable_face_smaller_than_min_usp_edge_is_sp_not_off_table():
+    """min_usp_edge asks how much table a USP pose rests on; an object standing alone on a small face
+    (4.2 cm across, the duck has such faces) is SP, not off the table."""
+    model = box_model(size=(0.03, 0.03, 0.02))
+    X, g = upright(model)
+    ps = poses.sample_poses(model, X, g, (0.9, 0.6), (), poses.Params(max_poses=1))
+    assert ps.status[0] == "ok" and ps.support[0] == "SP"
+
+
+def test_describe_pose_names_the_obstacle_a_pose_hits_and_why_it_is_off_the_table():
+    model = box_model()  # footprint 0.2 (x) x 0.3 (y), 0.4 high
+    far = ObstacleGeometry(name="obstacles[0]", kind="box", X_WOb=se3.make_transform(np.eye(3), [0.0, 0.5, 0.1]),
+                           size=(0.1, 0.1, 0.2))
+    torso = ObstacleGeometry(name="robot:torso_link", kind="box", X_WOb=se3.make_transform(np.eye(3), [-0.2, 0, 0.2]),
+                             size=(0.1, 0.4, 0.4))  # reaches x = -0.15
+    X, g = upright(model, xy=(-0.02, 0.0))  # the box's back face at x = -0.12: clear of both
+    assert poses.describe_pose(model, X, g, (0.9, 0.6), (far, torso), poses.Params()) == ("ok", "")
+    X, g = upright(model, xy=(-0.1, 0.0))  # back face at x = -0.2: 5 cm into the torso only
+    assert poses.describe_pose(model, X, g, (0.9, 0.6), (far, torso), poses.Params()) == (
+        "obstacle", "it hits robot:torso_link")
+    # CoM 3 cm past the table's edge at x = 0.3, USP not allowed; then 20 cm past it, nothing on the table.
+    X, g = upright(model, xy=(0.33, 0.0))
+    status, why = poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params(usp=False))
+    assert status == "unstable" and "0.030 m beyond its contact" in why and "USP" in why
+    X, g = upright(model, xy=(0.5, 0.0))
+    assert poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params()) == (
+        "off_table", "its support face is not on the table")

@@ -1,0 +1,153 @@
+"""Why a plan has no path (stages.diagnosis): each cause on a hand-made graph, then on small scenes."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from stages import plan
+from stages.artifacts import Table
+from tests.conftest import PIANO, write_scene
+
+
+def table(**cols) -> Table:
+    return Table({k: np.asarray(v) for k, v in cols.items()}, {})
+
+
+def toy(pivot12="ok", regrasp2="ok", pivot12_exists=True, support0="SP", goal_face=0):
+    """Three poses in a row on placement 0 (the goal pose 2 on ``goal_face``), pivot links 0-1-2; a
+    grasp node (0, 1, 2) and a free node (3, 4, 5) per pose (none for a USP pose); regrasp edges
+    grasp-free, pivot edges 0-1 and 1-2 (statuses as given). A stand-in for ``plan._Context``."""
+    sp = [support0 == "SP", True, True]
+    free = [3 + k for k in range(sum(sp))]
+    nodes = table(node_id=np.arange(3 + len(free)), kind=["grasp"] * 3 + ["free"] * len(free),
+                  pose_id=[0, 1, 2, *[i for i in range(3) if sp[i]]], grasp_id=[0, 1, 2, *[-1] * len(free)],
+                  support=[support0, "SP", "SP", *["SP"] * len(free)])
+    rows = [(i, f, "regrasp", regrasp2 if i == 2 else "ok") for i, f in zip(np.flatnonzero(sp), free, strict=True)]
+    rows += [(0, 1, "pivot", "ok")] + ([(1, 2, "pivot", pivot12)] if pivot12_exists else [])
+    a, b, prim, status = map(list, zip(*rows, strict=True))
+    edges = table(edge_id=np.arange(len(a)), node_a=a, node_b=b, primitive=prim, status=status,
+                  directed=np.zeros(len(a), bool), weight=np.ones(len(a)))
+    poses = table(placement_id=[0, 0, goal_face], support=[support0, "SP", "SP"], status=["ok"] * 3)
+    links = table(pose_a=[0, 1], pose_b=[1, 2], primitive=["pivot", "pivot"])
+    rejects = table(pose_id=[0, 2, 2], reason=["ik_unreachable", "normal_away", "env_collision:a/b"])
+    return SimpleNamespace(nodes=nodes, edges=edges, poses=poses, links=links, rejects=rejects,
+                           sample={"goal": {"pose_id": 2}})
+
+
+def infeasible(ctx, params=plan.Params(), removed=()):  # noqa: B008 (frozen dataclass)
+    G, start, goal = plan.build_search_graph(ctx, params)
+    for a, b in removed:
+        G.remove_edges_from([(a, b), (b, a)])
+    log = [{"edge_id": int(np.flatnonzero((ctx.edges["node_a"] == a) & (ctx.edges["node_b"] == b))[0]),
+            "reason": "mpc_infeasible"} for a, b in removed]
+    return plan._infeasible(ctx, params, G, start, goal, log, "no path in the graph")
+
+
+def test_a_cut_pivot_is_pivot_rejected_with_its_reason_counted():
+    p = infeasible(toy(pivot12="unstable"))
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: the pivots that lead on are rejected"
+    assert d["causes"] == ["pivot_rejected"] and d["leads_on_rejected"] == {"pivot": {"unstable": 1}}
+    assert d["reached"] == {"nodes": 4, "poses": 2, "placements": [0]} and d["goal_connected"]
+    assert d["goal"]["grasps"] == 1 and d["goal"]["rejected"] == {"env_collision": 1, "normal_away": 1}
+    assert "pivot 1 (unstable 1)" in d["detail"]
+
+
+def test_a_pivot_removed_by_backtracking_counts_with_its_motion_reason():
+    d = infeasible(toy(), removed=[(1, 2)])["diagnosis"]
+    assert d["cause"] == "pivot_rejected" and d["leads_on_rejected"] == {"pivot": {"mpc_infeasible": 1}}
+
+
+def test_a_refused_release_at_the_goal_is_regrasp_rejected():
+    d = infeasible(toy(regrasp2="env_collision:left_link_6_b/object"))["diagnosis"]
+    assert d["cause"] == "regrasp_rejected" and d["leads_on_rejected"] == {"regrasp": {"env_collision": 1}}
+
+
+def test_no_pivot_candidate_between_grasps_is_no_shared_grasp():
+    d = infeasible(toy(pivot12_exists=False))["diagnosis"]
+    assert d["cause"] == "no_shared_grasp" and d["leads_on_rejected"] == {}
+    assert d["next_poses"] == 1 and d["next_poses_without_grasp"] == 0
+
+
+def test_a_usp_start_is_start_not_sp():
+    p = infeasible(toy(support0="USP"))
+    assert p["reason"] == "no path in the graph: the start pose is not SP"
+    assert p["diagnosis"]["causes"][0] == "start_not_sp" and "no free node" in p["diagnosis"]["detail"]
+
+
+def test_a_goal_on_a_face_no_tumble_link_reaches_is_no_tumble_to_goal_face():
+    d = infeasible(toy(goal_face=1))["diagnosis"]
+    assert d["causes"] == ["no_tumble_to_goal_face"]
+    assert d["tumbles_onto_goal_face"]["links"] == 0
+
+
+def test_an_ablation_counts_the_edges_it_drops():
+    d = infeasible(toy(), plan.Params(no_regrasp=True, no_tumble=True))["diagnosis"]
+    # no_regrasp keeps only the start's grasp and the goal's release: the middle pose's is ablated.
+    assert d["edges_rejected"]["regrasp"] == {"ablation": 1}
+
+
+# --- small scenes: the toy piano, 10-40 poses, one cause each ---------------------------------------
+
+@pytest.fixture(scope="module")
+def piano(tmp_path_factory):
+    from stages import analyze
+
+    tmp = tmp_path_factory.mktemp("diagnosis")
+    analyze.run(PIANO, tmp / "analysis", 3.1, analyze.Params())
+    return tmp
+
+
+def plan_scene(tmp, name, params=plan.Params(), **changes):  # noqa: B008 (frozen dataclass)
+    from stages import graph, sample
+
+    scene, b, a = write_scene(tmp, name, **changes), tmp / name, tmp / "analysis"
+    sample.run(scene, a, b / "sample", sample.Params())
+    graph.run(scene, a, b / "sample", b / "graph", graph.Params())
+    return plan.run(scene, a, b / "sample", b / "graph", b / "plan.json", params)
+
+
+def test_scene_start_turned_away_from_the_arms_has_no_grasp(piano):
+    p = plan_scene(piano, "start", **{"start.xy": [0.05, 0.1], "start.yaw_deg": -40, "goal.xy": [0.0, 0.0],
+                                      "planner.max_poses": 20})
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: the start pose has no grasp"
+    assert d["start"]["grasps"] == 0 and sum(d["start"]["rejected"].values()) == d["start"]["candidates"] > 0
+
+
+def test_scene_goal_turned_away_from_the_arms_has_no_grasp(piano):
+    p = plan_scene(piano, "goal", **{"goal.xy": [0.05, 0.1], "goal.yaw_deg": -40, "planner.max_poses": 10})
+    d = p["diagnosis"]
+    assert d["cause"] == "goal_has_no_grasp" and d["start"]["grasps"] > 0 and d["goal"]["grasps"] == 0
+
+
+def test_scene_goal_beyond_a_small_lattice_is_not_connected(piano):
+    p = plan_scene(piano, "far", **{"goal.xy": [0.40, 0.0], "planner.max_poses": 20})
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: the goal pose is not connected to the start's pose lattice"
+    # 20 poses from the start, the goal, and at most a quarter of 20 grown from the goal (poses.Params).
+    assert d["causes"] == ["goal_not_connected"] and d["goal"]["grasps"] > 0 and 21 < d["lattice_poses"] <= 26
+
+
+def test_scene_goal_on_its_back_without_tumbling_has_no_tumble_to_its_face(piano):
+    p = plan_scene(piano, "back", plan.Params(no_tumble=True), **{"goal.down": [0, 1, 0], "planner.max_poses": 20})
+    d = p["diagnosis"]
+    assert d["cause"] == "no_tumble_to_goal_face" and d["tumbles_onto_goal_face"]["no_tumble"]
+    assert d["goal"]["placement_id"] != d["start"]["placement_id"]
+
+
+def test_scene_tilting_sixty_degrees_rejects_the_pivots_that_lead_on(piano):
+    p = plan_scene(piano, "tilt", **{"planner.tilt_deg": 60, "goal.xy": [-0.1, 0.0], "planner.max_poses": 20})
+    d = p["diagnosis"]
+    assert d["cause"] == "pivot_rejected" and sum(d["leads_on_rejected"]["pivot"].values()) > 0
+    assert d["start"]["grasps"] > 0 and d["goal"]["grasps"] > 0 and d["goal_connected"]
+
+
+def test_scene_tumbles_away_from_the_robot_are_out_of_the_pushers_reach(piano):
+    p = plan_scene(piano, "push", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
+                                     "planner.max_poses": 40})
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: the pushing arm cannot reach the tumbles that lead on"
+    tumbles = d["leads_on_rejected"]["tumble"]
+    assert tumbles.get("ik_unreachable", 0) + tumbles.get("joint_limit", 0) >= sum(tumbles.values()) / 2
