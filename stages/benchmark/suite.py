@@ -4,7 +4,8 @@ For each object family of :mod:`stages.objects`, ``goals`` cases cycle through t
 
 - ``translate``: the same face down and the same heading, moved 0.10–0.45 m in any direction;
 - ``rotate``: the same face down, turned 30–180° about the vertical, moved up to 0.45 m;
-- ``face``: another stable placement down (a tumble is needed), any heading, moved up to 0.45 m.
+- ``face``: another stable placement down (a tumble is needed), any heading, moved up to 0.45 m;
+  an object with no other placement stable by ``face_margin`` gets a ``rotate`` goal instead.
 
 The start rests on the object's upright placement (the face whose normal is nearest O's -z) at a
 random heading. Start and goal lie on the default scene's table (``data/scenes/default.json``: its
@@ -211,15 +212,14 @@ def object_cases(out: Path, template: dict, family, prm: SuiteParams) -> list[di
     rng = np.random.default_rng([prm.seed, zlib.crc32(family.name.encode())])
     cases = []
     for k in range(prm.goals):
-        kind = KINDS[k % len(KINDS)]
-        drawn = draw_case(rng, model, kind if (kind != "face" or faces) else "rotate", g0, faces, area, prm)
+        # An object with no other face stable by face_margin (the duck) gets a rotate goal instead.
+        kind = KINDS[k % len(KINDS)] if faces or KINDS[k % len(KINDS)] != "face" else "rotate"
+        drawn = draw_case(rng, model, kind, g0, faces, area, prm)
         case = {"case": f"{family.name}-{k:02d}-{kind}", "object": family.name, "kind": kind, "goal_index": k,
                 "scene": f"scenes/{family.name}-{k:02d}-{kind}.json", "reachable": False, "reason": "",
                 "grasps_start": 0, "grasps_goal": 0, "translation": float("nan"), "rotation_deg": float("nan")}
-        if kind == "face" and not faces:
-            case["reason"] = "no_other_stable_face"
         if drawn is None:
-            case["reason"] = case["reason"] or "no_admissible_placement"
+            case["reason"] = "no_admissible_placement"
             cases.append(case)
             continue
         start, goal = drawn
@@ -228,7 +228,7 @@ def object_cases(out: Path, template: dict, family, prm: SuiteParams) -> list[di
         n0, n1 = grasp_counts(path, adir, robot, collide, model, tables)
         reachable, why = label(n0, n1)
         dyaw = (goal.yaw_deg - start.yaw_deg + 180.0) % 360.0 - 180.0
-        case.update(reachable=reachable and not case["reason"], reason=case["reason"] or why, grasps_start=n0,
+        case.update(reachable=reachable, reason=why, grasps_start=n0,
                     grasps_goal=n1, translation=round(float(np.hypot(*np.subtract(goal.xy, start.xy))), 4),
                     rotation_deg=round(float(dyaw), 2), start_placement=start.g, goal_placement=goal.g)
         cases.append(case)
