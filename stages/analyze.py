@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import fcl
 import numpy as np
@@ -392,6 +393,78 @@ def sample_contacts(mesh: trimesh.Trimesh, segments: dict, params: Params) -> di
         "_stats": {"samples": n_samples, "distributed": int(len(keep)), "near_boundary": int((~far).sum()),
                    "ball_collision": int((far & ~free).sum())},
     }
+
+
+class Footprint(NamedTuple):
+    """Triangles under a ball's footprint, one row per (contact, triangle): ``contact (K,)``,
+    ``triangle (K,)`` ids and ``area (K,)`` m^2 of the triangle inside the footprint."""
+
+    contact: np.ndarray
+    triangle: np.ndarray
+    area: np.ndarray
+
+
+def footprint(mesh: trimesh.Trimesh, points: np.ndarray, triangles: np.ndarray, radius: float) -> Footprint:
+    """The surface within ``radius`` of each point ``(C, 3)`` (frame O) lying on triangle ``(C,)``.
+
+    Grown over face adjacency from the point's own triangle through triangles within ``radius`` of
+    the point whose normals are within 120 deg of its own: a right-angled neighbour (a box's edge, a
+    cylinder's cap) is under the ball's footprint, the far side of a part thinner than the footprint
+    (180 deg) is not. Breadth first, all points at once. Each triangle's area inside the sphere of
+    ``radius`` about the point is ``area_in_sphere``'s. Rows sorted by (contact, triangle).
+    """
+    normals, T = np.asarray(mesh.face_normals), np.asarray(mesh.triangles)
+    n_f = len(normals)
+    neighbors = _face_neighbors(np.asarray(mesh.face_adjacency), n_f)
+    triangles = np.asarray(triangles)
+    c, t = np.arange(len(points)), triangles
+    tested = found = c * n_f + t  # (contact, triangle) keys: sorted, as c is
+    while len(c):  # one pass per ring of triangles within the radius: a few
+        nb = neighbors[t]
+        ok = nb >= 0  # -1 pads the neighbour table
+        key = np.setdiff1d(np.repeat(c, nb.shape[1])[ok.ravel()] * n_f + nb[ok], tested)
+        tested = np.union1d(tested, key)
+        c, t = key // n_f, key % n_f
+        near = np.einsum("ij,ij->i", normals[t], normals[triangles[c]]) > -0.5  # cos 120 deg
+        near &= np.linalg.norm(trimesh.triangles.closest_point(T[t], points[c]) - points[c], axis=1) <= radius
+        c, t = c[near], t[near]
+        found = np.union1d(found, c * n_f + t)
+    c, t = found // n_f, found % n_f
+    return Footprint(c, t, area_in_sphere(T[t], points[c], radius))
+
+
+def area_in_sphere(triangles: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Area ``(K,)`` m^2 of each triangle ``(K, 3, 3)`` inside the sphere of ``radius`` about ``centres (K, 3)``.
+
+    The sphere cuts the triangle's plane in a disk; the triangle-disk intersection area is the sum,
+    over the triangle's edges, of the signed area the disk's centre sweeps along the edge: a
+    triangle where the edge runs inside the circle, a circular sector where it runs outside (the
+    polygon-circle intersection of computational geometry, exact).
+    """
+    v1, v2 = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    n = np.cross(v1, v2)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), tol.zero)
+    d = np.einsum("ij,ij->i", centres - triangles[:, 0], n)
+    r2 = radius**2 - d**2  # squared radius of the disk in the plane
+    A = triangles - (centres - d[:, None] * n)[:, None, :]  # (K, 3, 3) vertices about the disk's centre
+    B = np.roll(A, -1, axis=1)
+    e = B - A
+    a = np.maximum(np.einsum("kij,kij->ki", e, e), tol.zero)
+    b = np.einsum("kij,kij->ki", A, e)
+    disc = b**2 - a * (np.einsum("kij,kij->ki", A, A) - np.maximum(r2, 0)[:, None])
+    root = np.sqrt(np.maximum(disc, 0))
+    s = np.where(disc > 0, np.clip((-b - root) / a, 0, 1), 0.0)  # the edge is inside the circle on [s, t]
+    t = np.where(disc > 0, np.clip((-b + root) / a, 0, 1), 0.0)
+    P, Q = A + s[..., None] * e, A + t[..., None] * e
+
+    def cross(x, y):
+        return np.einsum("kij,kj->ki", np.cross(x, y), n)
+
+    def angle(x, y):
+        return np.arctan2(cross(x, y), np.einsum("kij,kij->ki", x, y))
+
+    swept = 0.5 * np.maximum(r2, 0)[:, None] * (angle(A, P) + angle(Q, B)) + 0.5 * cross(P, Q)
+    return np.where(r2 > 0, np.maximum(swept.sum(axis=1), 0.0), 0.0)
 
 
 def _thin(points: np.ndarray, spacing: float) -> np.ndarray:

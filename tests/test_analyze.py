@@ -154,3 +154,60 @@ def test_open_mesh_is_repaired_when_trimesh_can(tmp_path):
     holed.export(p)
     m = analyze.load_mesh(p)
     assert m.is_watertight and m.volume == pytest.approx(0.008)
+
+
+# ---------------------------------------------------------------------------------- curved contacts
+def test_area_in_sphere_matches_closed_forms():
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cases = [  # (centre, radius, area)
+        ((0.2, 0.2, 0.0), 0.1, np.pi * 0.1**2),  # the disk lies inside the triangle
+        ((0.2, 0.2, 0.06), 0.1, np.pi * (0.1**2 - 0.06**2)),  # the sphere cuts the plane in a smaller disk
+        ((0.3, 0.3, 0.0), 5.0, 0.5),  # the whole triangle inside
+        ((0.0, 0.0, 0.0), 0.1, np.pi * 0.1**2 / 4),  # a quarter disk at the right-angled corner
+        ((0.5, 0.0, 0.0), 0.1, np.pi * 0.1**2 / 2),  # a half disk on an edge
+        ((0.5, -0.1, 0.0), 0.1, 0.0),  # tangent to an edge from outside
+        ((3.0, 3.0, 0.0), 0.1, 0.0),
+    ]
+    for centre, radius, area in cases:
+        got = analyze.area_in_sphere(tri[None], np.array([centre]), radius)
+        assert got == pytest.approx([area], abs=1e-12), centre  # exact formula: rounding only
+
+
+def test_area_in_sphere_batch_equals_loop_and_monte_carlo(rng):
+    T = rng.normal(size=(6, 3, 3)) * 0.02
+    c = rng.normal(size=(6, 3)) * 0.01
+    batch = analyze.area_in_sphere(T, c, 0.02)
+    assert analyze.area_in_sphere(T[:0], c[:0], 0.02).shape == (0,)
+    u, v = rng.random((2, 200_000))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    for k in range(len(T)):
+        assert analyze.area_in_sphere(T[k:k + 1], c[k:k + 1], 0.02)[0] == batch[k]
+        pts = T[k, 0] + u[:, None] * (T[k, 1] - T[k, 0]) + v[:, None] * (T[k, 2] - T[k, 0])
+        area = np.linalg.norm(np.cross(T[k, 1] - T[k, 0], T[k, 2] - T[k, 0])) / 2
+        mc = area * np.mean(np.linalg.norm(pts - c[k], axis=1) <= 0.02)
+        # Monte Carlo with 2e5 samples: standard error <= area * 0.5 / sqrt(2e5) ~ 1.1e-3 area.
+        assert batch[k] == pytest.approx(mc, abs=5e-3 * area)
+
+
+def _footprint_areas(mesh: trimesh.Trimesh, p, rho: float) -> tuple[float, float, float]:
+    """Footprint area (m^2) at ``p`` on faces facing +z, sideways and -z."""
+    p = np.array([p])
+    fp = analyze.footprint(mesh, p, mesh.nearest.on_surface(p)[2], rho)
+    nz = mesh.face_normals[fp.triangle, 2]
+    return fp.area[nz > 0.99].sum(), fp.area[np.abs(nz) < 0.01].sum(), fp.area[nz < -0.99].sum()
+
+
+def test_footprint_covers_a_disk_turns_a_right_angled_edge_and_skips_a_thin_plate_far_side():
+    rho, d = 0.01, 0.004
+    box = trimesh.creation.box((0.2, 0.2, 0.2))
+    # The whole disk on a face (exact formula: rounding only).
+    assert _footprint_areas(box, (0.0, 0.0, 0.1), rho) == pytest.approx((np.pi * rho**2, 0, 0), abs=1e-15)
+    # d from an edge: the disk minus the circular segment beyond it, and half a disk on the side face.
+    h = np.arccos(d / rho)
+    segment = rho**2 * (h - np.sin(h) * np.cos(h))
+    expected = (np.pi * rho**2 - segment, np.pi * (rho**2 - d**2) / 2, 0)
+    assert _footprint_areas(box, (0.1 - d, 0.0, 0.1), rho) == pytest.approx(expected, abs=1e-15)
+    # On a 5 mm plate near its rim the bottom face is within reach around the rim but faces away.
+    top, side, bottom = _footprint_areas(trimesh.creation.box((0.2, 0.2, 0.005)), (0.1 - d, 0.0, 0.0025), rho)
+    assert top == pytest.approx(expected[0], abs=1e-15) and side > 0 and bottom == 0
