@@ -28,7 +28,15 @@ def analyze(
         float, typer.Option(help="Minimum distance of a contact to its facet boundary (m).")
     ] = _D.boundary_margin,
     ball_radius: Annotated[float, typer.Option(help="Ball end-effector radius (m).")] = _D.ball_radius,
-    pair_angle: Annotated[float, typer.Option(help="Opposite-normal tolerance of a pair (deg).")] = _D.pair_angle_deg,
+    pair_angle: Annotated[
+        float, typer.Option(help="Flat-facet pairs: opposite-normal tolerance and squeeze cone (deg).")
+    ] = _D.pair_angle_deg,
+    cone_angle: Annotated[
+        float, typer.Option(help="Pairs with a curved contact: friction-cone half-angle of the squeeze (deg).")
+    ] = _D.cone_angle_deg,
+    max_pairs: Annotated[
+        int, typer.Option(help="At most this many pairs (flat-facet pairs are always kept).")
+    ] = _D.max_pairs,
     sp_margin: Annotated[float, typer.Option(help="CoM margin inside the support polygon (m).")] = _D.sp_margin,
     seed: Annotated[int, typer.Option(help="Seed of the surface sampling.")] = _D.seed,
 ) -> None:
@@ -36,7 +44,8 @@ def analyze(
     params = stage.Params(
         segment_angle_deg=segment_angle, min_facet_area=min_facet_area, sample_spacing=spacing,
         boundary_margin=boundary_margin, ball_radius=ball_radius, pair_angle_deg=pair_angle,
-        sp_margin=sp_margin, seed=seed, sample_density=_D.sample_density, hull_coplanar_deg=_D.hull_coplanar_deg,
+        cone_angle_deg=cone_angle, max_pairs=max_pairs, sp_margin=sp_margin, seed=seed,
+        sample_density=_D.sample_density, hull_coplanar_deg=_D.hull_coplanar_deg, flat_facet_deg=_D.flat_facet_deg,
     )
     with cli_errors():
         if scene is not None:

@@ -14,12 +14,18 @@ Works on one watertight triangle mesh in its own frame ``O`` (metres). Outputs, 
   origin); it is SP when the CoM's vertical projection lies inside the support polygon by at least
   ``sp_margin`` (signed distance to the polygon boundary, recorded as ``margin``).
 - **contacts** (§4.1): points sampled uniformly by area over the whole surface and thinned to a
-  minimum spacing, then distributed onto every facet (large enough to touch) that holds their
-  triangle, and dropped when nearer than ``boundary_margin`` to the facet's boundary or when a ball
-  of ``ball_radius`` touching there would intersect the object elsewhere (python-fcl).
-- **pairs** (§4.2): two contacts on facets whose normals are opposite within ``pair_angle_deg``, the
-  line between them within that angle of both inward normals (an antipodal squeeze), the segment
-  between them inside the object. Each contact keeps its best partner; pairs are unordered.
+  minimum spacing. On a flat facet (large enough to touch) a point is distributed onto every such
+  facet holding its triangle, with the facet's normal, and dropped nearer than ``boundary_margin``
+  to the facet's boundary. Elsewhere (curved surfaces) it is one contact of its own, ``facet_id``
+  -1, whose normal is averaged over the ball's footprint (a disk of ``boundary_margin``), dropped
+  when that footprint reaches a flat facet, and kept only if a pair uses it. Either is dropped
+  when a ball of ``ball_radius`` touching there would intersect the object (python-fcl).
+- **pairs** (§4.2): an antipodal squeeze, the line between two contacts inside the friction cone at
+  both, the segment between them inside the object. Two contacts on flat facets pair when the
+  facets' normals are opposite within ``pair_angle_deg`` (the paper's rule; each keeps its best
+  partner); a pair with a curved contact is judged by the contacts' own normals and the cone of
+  ``cone_angle_deg`` (Nguyen's antipodal condition), the candidates spread over the object by
+  farthest-point sampling up to ``max_pairs``. Pairs are unordered.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import fcl
 import numpy as np
@@ -60,8 +67,19 @@ class Params:
     boundary_margin: float = 0.01
     #: Radius of the ball end-effector (m); the paper's ball is 4 cm across.
     ball_radius: float = 0.02
-    #: Paired facets' normals must be opposite within this angle; the squeeze line within it too.
+    #: Facet pairs (§4.2): paired flat facets' normals opposite within this angle, the squeeze line
+    #: within it of both contact normals (the paper's rule; the flat-face pairs as they were).
     pair_angle_deg: float = 15.0
+    #: Cone pairs: half-angle of the friction cone the squeeze line must lie in at both contacts,
+    #: atan(0.8 x 0.5): the object's friction is a scene parameter (0.5 in every scene), taken here
+    #: with a safety factor of 0.8 on mu; grasp stability (§4.3) later checks the scene's own mu.
+    cone_angle_deg: float = 21.8
+    #: A contact facet is flat when every triangle's normal is within this angle of the facet's: a
+    #: planar panel's agree to rounding, a curved surface's facets spread up to ``segment_angle_deg``.
+    flat_facet_deg: float = 1.0
+    #: At most this many pairs: facet pairs are all kept, cone pairs fill the rest (grasp refinement
+    #: downstream costs poses x pairs; the toy piano has 122 facet pairs).
+    max_pairs: int = 150
     #: A placement is SP when the CoM projection is at least this far inside its support polygon (m).
     sp_margin: float = 0.005
     #: Hull faces whose normals differ by less than this angle merge into one placement face.
@@ -343,15 +361,58 @@ def _facet_boundary(faces: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------- contacts
 def sample_contacts(mesh: trimesh.Trimesh, segments: dict, params: Params) -> dict:
-    """Contact points on facets (§4.1): even sampling, distribution onto facets, three filters.
+    """Contact points (§4.1): even sampling over the surface, then facet contacts and curved contacts.
 
-    Returns columns ``contact_id, facet_id, triangle, px py pz, nx ny nz`` (outward normal, frame O)
-    plus ``n_samples`` (points after thinning, before distribution) in a 0-d array under ``_stats``.
+    - **facet contacts** (the paper's): each sample on a flat contact facet (``_flat_facets``) is
+      distributed onto every such facet holding its triangle, and dropped nearer than
+      ``boundary_margin`` to that facet's boundary; its normal is its triangle's (the facet's).
+    - **curved contacts**: each sample on no flat contact facet is one contact with ``facet_id = -1``
+      and its own normal: the area-weighted normal of the surface under the ball's footprint, a disk
+      of ``boundary_margin`` (``footprint``), so that a faceted mesh's noise averages out. It is
+      dropped when that footprint reaches a flat contact facet (the boundary margin, seen from the
+      curved side: a ball there would also touch the flat face's edge).
+    - both: dropped when a ball of ``ball_radius`` touching there (centre p + r n, where grasping
+      puts it) intersects the object; on a curved contact this also refuses a crease, whose averaged
+      normal tilts the ball into the face the point lies on.
+
+    Returns columns ``contact_id, facet_id, triangle, px py pz, nx ny nz`` (outward unit normal,
+    frame O), facet contacts first (by sample, then facet), then curved contacts (by sample), and the
+    counts of samples and of each filter's drops under ``_stats``. ``compute`` then drops the curved
+    contacts no pair uses (``drop_unpaired_curved_contacts``).
     """
+    pts, tri = _sample_surface(mesh, params)
+    flat = _flat_facets(mesh, segments, params.flat_facet_deg)
+    facet = _facet_contacts(mesh, segments, flat, pts, tri, params)
+    curved = _curved_contacts(mesh, segments, flat, pts, tri, params)
+    p = np.concatenate([facet.p, curved.p])
+    n = np.concatenate([facet.n, curved.n])
+    return {
+        "contact_id": np.arange(len(p)),
+        "facet_id": np.concatenate([facet.facet, curved.facet]).astype(np.int64),
+        "triangle": np.concatenate([facet.triangle, curved.triangle]).astype(np.int64),
+        "px": p[:, 0], "py": p[:, 1], "pz": p[:, 2],
+        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2],
+        "_stats": {"samples": len(pts), **facet.dropped, **curved.dropped},
+    }
+
+
+class _Contacts(NamedTuple):
+    """One kind of contact: points ``p (C, 3)`` m and unit normals ``n (C, 3)`` (frame O), ``facet
+    (C,)`` (-1: curved), ``triangle (C,)`` and the counts each filter dropped."""
+
+    p: np.ndarray
+    n: np.ndarray
+    facet: np.ndarray
+    triangle: np.ndarray
+    dropped: dict
+
+
+def _sample_surface(mesh: trimesh.Trimesh, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform samples thinned to ``sample_spacing``: points ``(S, 3)`` (frame O), triangles ``(S,)``."""
     rng = np.random.default_rng(params.seed)
     areas = np.asarray(mesh.area_faces)
     n_raw = max(int(np.ceil(params.sample_density * mesh.area)), 16)
-    # Area-uniform samples: triangle by cumulative area, point by uniform barycentrics.
+    # Triangle by cumulative area, point by uniform barycentrics.
     cdf = np.cumsum(areas) / areas.sum()
     tri = np.minimum(np.searchsorted(cdf, rng.random(n_raw), side="right"), len(areas) - 1)
     u, v = rng.random((2, n_raw))
@@ -360,38 +421,132 @@ def sample_contacts(mesh: trimesh.Trimesh, segments: dict, params: Params) -> di
     T = np.asarray(mesh.triangles)[tri]
     pts = T[:, 0] + u[:, None] * (T[:, 1] - T[:, 0]) + v[:, None] * (T[:, 2] - T[:, 0])
     keep = _thin(pts, params.sample_spacing)
-    pts, tri = pts[keep], tri[keep]
-    n_samples = len(pts)
+    return pts[keep], tri[keep]
 
-    # Distribute onto every contact-surface facet holding the sample's triangle.
+
+def _flat_facets(mesh: trimesh.Trimesh, segments: dict, flat_deg: float) -> np.ndarray:
+    """``(F,)`` True for contact facets whose triangles' normals are all within ``flat_deg`` of the facet's."""
+    members = segments["triangles"]
+    facet = np.repeat(np.arange(len(members)), [len(t) for t in members])
+    tris = np.concatenate(list(members)) if len(members) else np.zeros(0, dtype=np.int64)
+    fn = np.stack([segments["nx"], segments["ny"], segments["nz"]], axis=1)
+    cos_min = np.ones(len(members))
+    np.minimum.at(cos_min, facet, np.einsum("ij,ij->i", np.asarray(mesh.face_normals)[tris], fn[facet]))
+    return np.asarray(segments["contact_surface"]) & (cos_min >= np.cos(np.radians(flat_deg)))
+
+
+def _facet_contacts(mesh: trimesh.Trimesh, segments: dict, flat: np.ndarray, pts: np.ndarray, tri: np.ndarray,
+                    params: Params) -> _Contacts:
+    """Samples ``pts (S, 3)`` on triangles ``tri (S,)`` distributed onto every facet with ``flat (F,)``
+    holding their triangle, then filtered (§4.1); see ``sample_contacts``."""
     n_facets = len(segments["facet_id"])
-    ok_facet = np.asarray(segments["contact_surface"])
-    rows = np.concatenate([t for f, t in enumerate(segments["triangles"]) if ok_facet[f]] or [np.zeros(0, int)])
-    cols = np.concatenate([np.full(len(t), f) for f, t in enumerate(segments["triangles"]) if ok_facet[f]]
-                          or [np.zeros(0, int)])
-    membership = sp.csr_matrix((np.ones(len(rows), dtype=bool), (rows, cols)), shape=(len(areas), n_facets))
+    members = [t for f, t in enumerate(segments["triangles"]) if flat[f]]
+    rows = np.concatenate(members or [np.zeros(0, int)])
+    cols = np.repeat(np.flatnonzero(flat), [len(t) for t in members])
+    membership = sp.csr_matrix((np.ones(len(rows), dtype=bool), (rows, cols)), shape=(len(mesh.faces), n_facets))
     m = membership[tri].tocoo()
     order = np.lexsort((m.col, m.row))
     sample_idx, facet_idx = m.row[order], m.col[order]
-    p = pts[sample_idx]
-    t_idx = tri[sample_idx]
+    p, t_idx = pts[sample_idx], tri[sample_idx]
     n = np.asarray(mesh.face_normals)[t_idx]
-
-    # Filter 1: distance to the facet boundary.
     far = _boundary_distance(mesh, segments, p, facet_idx) >= params.boundary_margin
-    # Filter 3: a ball touching at p (centre p + r n) must not intersect the object elsewhere.
     free = _balls_free(mesh, p + params.ball_radius * n, params.ball_radius)
     keep = far & free
-    p, n, facet_idx, t_idx = p[keep], n[keep], facet_idx[keep], t_idx[keep]
-    return {
-        "contact_id": np.arange(len(p)),
-        "facet_id": facet_idx.astype(np.int64),
-        "triangle": t_idx.astype(np.int64),
-        "px": p[:, 0], "py": p[:, 1], "pz": p[:, 2],
-        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2],
-        "_stats": {"samples": n_samples, "distributed": int(len(keep)), "near_boundary": int((~far).sum()),
-                   "ball_collision": int((far & ~free).sum())},
-    }
+    dropped = {"distributed": int(len(keep)), "near_boundary": int((~far).sum()),
+               "ball_collision": int((far & ~free).sum())}
+    return _Contacts(p[keep], n[keep], facet_idx[keep], t_idx[keep], dropped)
+
+
+def _curved_contacts(mesh: trimesh.Trimesh, segments: dict, flat: np.ndarray, pts: np.ndarray, tri: np.ndarray,
+                     params: Params) -> _Contacts:
+    """Samples ``pts (S, 3)`` on triangles ``tri (S,)`` in no facet with ``flat (F,)``, with their
+    footprint normals, filtered; see ``sample_contacts``."""
+    on_flat = np.zeros(len(mesh.faces), dtype=bool)
+    on_flat[np.concatenate([t for f, t in enumerate(segments["triangles"]) if flat[f]] or [np.zeros(0, int)])] = True
+    cand = np.flatnonzero(~on_flat[tri])
+    fp = footprint(mesh, pts[cand], tri[cand], params.boundary_margin)
+    n = np.zeros((len(cand), 3))
+    np.add.at(n, fp.contact, fp.area[:, None] * np.asarray(mesh.face_normals)[fp.triangle])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), tol.zero)
+    near_flat = np.bincount(fp.contact, weights=on_flat[fp.triangle] & (fp.area > 0), minlength=len(cand)) > 0
+    p = pts[cand]
+    free = _balls_free(mesh, p + params.ball_radius * n, params.ball_radius)
+    keep = ~near_flat & free
+    dropped = {"curved_samples": int(len(cand)), "curved_near_flat": int(near_flat.sum()),
+               "curved_ball_collision": int((~near_flat & ~free).sum())}
+    return _Contacts(p[keep], n[keep], np.full(int(keep.sum()), -1), tri[cand][keep], dropped)
+
+
+class Footprint(NamedTuple):
+    """Triangles under a ball's footprint, one row per (contact, triangle): ``contact (K,)``,
+    ``triangle (K,)`` ids and ``area (K,)`` m^2 of the triangle inside the footprint."""
+
+    contact: np.ndarray
+    triangle: np.ndarray
+    area: np.ndarray
+
+
+def footprint(mesh: trimesh.Trimesh, points: np.ndarray, triangles: np.ndarray, radius: float) -> Footprint:
+    """The surface within ``radius`` of each point ``(C, 3)`` (frame O) lying on triangle ``(C,)``.
+
+    Grown over face adjacency from the point's own triangle through triangles within ``radius`` of
+    the point whose normals are within 120 deg of its own: a right-angled neighbour (a box's edge, a
+    cylinder's cap) is under the ball's footprint, the far side of a part thinner than the footprint
+    (180 deg) is not. Breadth first, all points at once. Each triangle's area inside the sphere of
+    ``radius`` about the point is ``area_in_sphere``'s. Rows sorted by (contact, triangle).
+    """
+    normals, T = np.asarray(mesh.face_normals), np.asarray(mesh.triangles)
+    n_f = len(normals)
+    neighbors = _face_neighbors(np.asarray(mesh.face_adjacency), n_f)
+    triangles = np.asarray(triangles)
+    c, t = np.arange(len(points)), triangles
+    tested = found = c * n_f + t  # (contact, triangle) keys: sorted, as c is
+    while len(c):  # one pass per ring of triangles within the radius: a few
+        nb = neighbors[t]
+        ok = nb >= 0  # -1 pads the neighbour table
+        key = np.setdiff1d(np.repeat(c, nb.shape[1])[ok.ravel()] * n_f + nb[ok], tested)
+        tested = np.union1d(tested, key)
+        c, t = key // n_f, key % n_f
+        near = np.einsum("ij,ij->i", normals[t], normals[triangles[c]]) > -0.5  # cos 120 deg
+        near &= np.linalg.norm(trimesh.triangles.closest_point(T[t], points[c]) - points[c], axis=1) <= radius
+        c, t = c[near], t[near]
+        found = np.union1d(found, c * n_f + t)
+    c, t = found // n_f, found % n_f
+    return Footprint(c, t, area_in_sphere(T[t], points[c], radius))
+
+
+def area_in_sphere(triangles: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Area ``(K,)`` m^2 of each triangle ``(K, 3, 3)`` inside the sphere of ``radius`` about ``centres (K, 3)``.
+
+    The sphere cuts the triangle's plane in a disk; the triangle-disk intersection area is the sum,
+    over the triangle's edges, of the signed area the disk's centre sweeps along the edge: a
+    triangle where the edge runs inside the circle, a circular sector where it runs outside (the
+    polygon-circle intersection of computational geometry, exact).
+    """
+    v1, v2 = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    n = np.cross(v1, v2)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), tol.zero)
+    d = np.einsum("ij,ij->i", centres - triangles[:, 0], n)
+    r2 = radius**2 - d**2  # squared radius of the disk in the plane
+    A = triangles - (centres - d[:, None] * n)[:, None, :]  # (K, 3, 3) vertices about the disk's centre
+    B = np.roll(A, -1, axis=1)
+    e = B - A
+    a = np.maximum(np.einsum("kij,kij->ki", e, e), tol.zero)
+    b = np.einsum("kij,kij->ki", A, e)
+    disc = b**2 - a * (np.einsum("kij,kij->ki", A, A) - np.maximum(r2, 0)[:, None])
+    root = np.sqrt(np.maximum(disc, 0))
+    s = np.where(disc > 0, np.clip((-b - root) / a, 0, 1), 0.0)  # the edge is inside the circle on [s, t]
+    t = np.where(disc > 0, np.clip((-b + root) / a, 0, 1), 0.0)
+    P, Q = A + s[..., None] * e, A + t[..., None] * e
+
+    def cross(x, y):
+        return np.einsum("kij,kj->ki", np.cross(x, y), n)
+
+    def angle(x, y):
+        return np.arctan2(cross(x, y), np.einsum("kij,kij->ki", x, y))
+
+    swept = 0.5 * np.maximum(r2, 0)[:, None] * (angle(A, P) + angle(Q, B)) + 0.5 * cross(P, Q)
+    return np.where(r2 > 0, np.maximum(swept.sum(axis=1), 0.0), 0.0)
 
 
 def _thin(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -454,16 +609,68 @@ def _balls_free(mesh: trimesh.Trimesh, centres: np.ndarray, radius: float) -> np
 
 # -------------------------------------------------------------------------------------------- pairs
 def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, params: Params) -> dict:
-    """Antipodal contact pairs (§4.2) for two ball end-effectors, unordered, ``contact_a < contact_b``."""
+    """Antipodal contact pairs (§4.2) for two ball end-effectors, unordered, ``contact_a < contact_b``.
+
+    One squeeze test, two rules. The test: the line between the two contacts lies inside the friction
+    cone about the inward normal at both (Nguyen's antipodal condition for force closure with two
+    point contacts with friction), the contacts are more than a ball's diameter apart and the open
+    segment between them stays inside the object. **Facet pairs** (the paper's): two facet contacts
+    on flat facets whose normals are opposite within ``pair_angle_deg``, the cone's half-angle too;
+    each contact keeps its best partner, as before. **Cone pairs**: any two contacts of which at least
+    one is curved (``facet_id = -1``), judged by their own normals alone with the cone of
+    ``cone_angle_deg``; every pair that passes is a candidate, and they fill what ``max_pairs`` leaves
+    after the facet pairs, spread over the object (``_spread_pairs``).
+
+    Returns columns ``pair_id, contact_a, contact_b, facet_a, facet_b`` (-1: curved), ``width`` (m),
+    ``angle`` (rad, the larger angle between the line and an inward normal: the cone's half-angle
+    minus it is the margin), ``mx my mz`` (midpoint, frame O); facet pairs first, each rule's by (a, b).
+    """
     P = np.stack([contacts["px"], contacts["py"], contacts["pz"]], axis=1)
     N = np.stack([contacts["nx"], contacts["ny"], contacts["nz"]], axis=1)
-    fid = contacts["facet_id"]
+    fid = np.asarray(contacts["facet_id"])
+    curved = fid < 0
     FN = np.stack([segments["nx"], segments["ny"], segments["nz"]], axis=1)
-    cos_t = np.cos(np.radians(params.pair_angle_deg))
-    opposite = FN @ FN.T < -cos_t  # (nf, nf) facets with opposite normals
+    opposite = FN @ FN.T < -np.cos(np.radians(params.pair_angle_deg))  # (nf, nf) facets with opposite normals
+
+    def facet_rule(a):  # both flat, on opposite facets (fid -1 indexes a facet but is masked)
+        return opposite[fid[a]][:, fid] & ~curved[a, None] & ~curved[None, :]
+
+    def cone_rule(a):
+        return curved[a, None] | curved[None, :]
+
+    inside = make_segments_inside_fn(mesh)
+    width = 2 * params.ball_radius
+    facet_ab = _antipodal_pairs(P, N, facet_rule, np.cos(np.radians(params.pair_angle_deg)), width, True)
+    facet_ab = facet_ab[inside(P[facet_ab[:, 0]], P[facet_ab[:, 1]])]
+    cone_ab = _antipodal_pairs(P, N, cone_rule, np.cos(np.radians(params.cone_angle_deg)), width, False)
+    keep = _spread_pairs(P[cone_ab[:, 0]], P[cone_ab[:, 1]], _squeeze_angle(P, N, cone_ab),
+                         max(params.max_pairs - len(facet_ab), 0), inside)
+    ab = np.concatenate([facet_ab, cone_ab[keep]])
+    pa, pb = P[ab[:, 0]], P[ab[:, 1]]
+    mid = 0.5 * (pa + pb)
+    return {
+        "pair_id": np.arange(len(ab)),
+        "contact_a": ab[:, 0].astype(np.int64),
+        "contact_b": ab[:, 1].astype(np.int64),
+        "facet_a": fid[ab[:, 0]].astype(np.int64),
+        "facet_b": fid[ab[:, 1]].astype(np.int64),
+        "width": np.linalg.norm(pb - pa, axis=1),
+        "angle": _squeeze_angle(P, N, ab),
+        "mx": mid[:, 0], "my": mid[:, 1], "mz": mid[:, 2],
+    }
+
+
+def _antipodal_pairs(P: np.ndarray, N: np.ndarray, rule, cos_t: float, min_width: float,
+                     best_only: bool) -> np.ndarray:
+    """Unique sorted pairs ``(K, 2)`` passing the squeeze test that ``rule`` allows.
+
+    ``P, N (C, 3)``: contact points and outward normals (frame O). ``rule(rows)`` gives the ``(len(rows),
+    C)`` mask of allowed partners. The test: the min-cosine between the line and the two inward normals
+    exceeds ``cos_t`` and the contacts are more than ``min_width`` apart (m). ``best_only``: each
+    contact keeps only its partner of largest min-cosine (ties: the lowest id).
+    """
     C = len(P)
-    best = np.full(C, -1)
-    best_score = np.full(C, -np.inf)
+    found = [np.zeros((0, 2), dtype=np.int64)]
     chunk = 512
     for s in range(0, C, chunk):  # chunks of rows keep the (chunk, C, 3) block small
         a = np.arange(s, min(s + chunk, C))
@@ -472,53 +679,97 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
         u = d / np.maximum(dist[..., None], tol.zero)
         ca = -np.einsum("ijk,ik->ij", u, N[a])  # cos between a->b and a's inward normal
         cb = np.einsum("ijk,jk->ij", u, N)  # cos between b->a and b's inward normal
-        score = np.minimum(ca, cb)
-        ok = opposite[fid[a]][:, fid] & (score > cos_t) & (dist > 2 * params.ball_radius)
-        score = np.where(ok, score, -np.inf)
-        j = np.argmax(score, axis=1)
-        best[a] = np.where(np.isfinite(score[np.arange(len(a)), j]), j, -1)
-        best_score[a] = score[np.arange(len(a)), j]
-    has = best >= 0
-    ab = np.sort(np.stack([np.flatnonzero(has), best[has]], axis=1), axis=1)
-    ab = np.unique(ab, axis=0) if len(ab) else np.zeros((0, 2), dtype=np.int64)
-    # The open segment between the two contacts must stay inside the object.
-    inside = _segments_inside(mesh, P[ab[:, 0]], P[ab[:, 1]]) if len(ab) else np.zeros(0, bool)
-    ab = ab[inside]
-    pa, pb = P[ab[:, 0]], P[ab[:, 1]]
-    d = pb - pa
-    width = np.linalg.norm(d, axis=1)
-    u = d / np.maximum(width[:, None], tol.zero)
-    ang = np.arccos(np.clip(np.minimum(-np.einsum("ij,ij->i", u, N[ab[:, 0]]),
-                                       np.einsum("ij,ij->i", u, N[ab[:, 1]])), -1, 1))
-    mid = 0.5 * (pa + pb)
-    return {
-        "pair_id": np.arange(len(ab)),
-        "contact_a": ab[:, 0].astype(np.int64),
-        "contact_b": ab[:, 1].astype(np.int64),
-        "facet_a": fid[ab[:, 0]].astype(np.int64),
-        "facet_b": fid[ab[:, 1]].astype(np.int64),
-        "width": width,
-        "angle": ang,
-        "mx": mid[:, 0], "my": mid[:, 1], "mz": mid[:, 2],
-    }
+        score = np.where(rule(a) & (dist > min_width), np.minimum(ca, cb), -np.inf)
+        ok = score > cos_t
+        if best_only:
+            j = np.argmax(score, axis=1)
+            ok &= np.arange(C)[None, :] == j[:, None]
+        i, j = np.nonzero(ok)
+        found.append(np.stack([a[i], j], axis=1))
+    ab = np.sort(np.concatenate(found), axis=1)
+    return np.unique(ab, axis=0) if len(ab) else ab
 
 
-def _segments_inside(mesh: trimesh.Trimesh, a: np.ndarray, b: np.ndarray, inset: float = 0.002) -> np.ndarray:
-    """``(K,)`` True where the segment a→b, shortened by ``inset`` at both ends, misses the surface."""
-    obj = _fcl_mesh(mesh)
-    out = np.ones(len(a), dtype=bool)
-    req = fcl.CollisionRequest()
-    for i in range(len(a)):  # one fcl call per pair (about 100; 5-20 µs each)
-        d = b[i] - a[i]
-        length = np.linalg.norm(d)
-        if length <= 2 * inset:
-            out[i] = False
+def _squeeze_angle(P: np.ndarray, N: np.ndarray, ab: np.ndarray) -> np.ndarray:
+    """``(K,)`` rad: the larger angle between the line a->b of each pair and an inward contact normal."""
+    u = P[ab[:, 1]] - P[ab[:, 0]]
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), tol.zero)
+    cos = np.minimum(-np.einsum("ij,ij->i", u, N[ab[:, 0]]), np.einsum("ij,ij->i", u, N[ab[:, 1]]))
+    return np.arccos(np.clip(cos, -1, 1))
+
+
+def _spread_pairs(pa: np.ndarray, pb: np.ndarray, angle: np.ndarray, n_keep: int, valid) -> np.ndarray:
+    """Sorted indices of at most ``n_keep`` pairs that ``valid`` accepts, spread over the object.
+
+    Farthest-point sampling in pair space: ``pa, pb (K, 3)`` are the pairs' contacts (frame O), and
+    the distance between two unordered pairs is the larger displacement of a contact under the better
+    matching of their ends (m). The first pair is the one of smallest squeeze ``angle (K,)`` rad (the
+    largest margin), each next one the farthest from those kept (the first on ties): coverage serves
+    grasp refinement more than margin does, every candidate being inside the cone already.
+    ``valid(a (1, 3), b (1, 3)) -> (1,) bool`` (``make_segments_inside_fn``) is asked only of the pair
+    about to be taken; a refused pair is dropped and the next one taken instead.
+    """
+    K = len(pa)
+    taken, refused = np.zeros(K, dtype=bool), np.zeros(K, dtype=bool)
+    dist = np.full(K, np.inf)
+    n_taken = 0
+    while n_taken < n_keep and not (taken | refused).all():  # n_keep + refusals steps, each O(K)
+        free = ~taken & ~refused
+        i = int(np.argmax(np.where(free, dist, -np.inf)) if n_taken else np.argmin(np.where(free, angle, np.inf)))
+        if not valid(pa[i:i + 1], pb[i:i + 1])[0]:
+            refused[i] = True
             continue
-        R = se3.rotation_between(np.array([0.0, 0.0, 1.0]), d / length)
-        seg = fcl.CollisionObject(fcl.Cylinder(1e-5, length - 2 * inset),
-                                  fcl.Transform(R, 0.5 * (a[i] + b[i])))
-        out[i] = not fcl.collide(seg, obj, req, fcl.CollisionResult())
-    return out
+        taken[i] = True
+        n_taken += 1
+        straight = np.maximum(np.linalg.norm(pa - pa[i], axis=1), np.linalg.norm(pb - pb[i], axis=1))
+        crossed = np.maximum(np.linalg.norm(pa - pb[i], axis=1), np.linalg.norm(pb - pa[i], axis=1))
+        dist = np.minimum(dist, np.minimum(straight, crossed))
+    return np.flatnonzero(taken)
+
+
+def drop_unpaired_curved_contacts(contacts: dict, pairs: dict) -> tuple[dict, dict, int]:
+    """Drop the curved contacts (``facet_id`` -1) that no pair uses; renumber contacts and pairs.
+
+    Curved contacts are sampled for squeezing; downstream every contact is also a candidate for a
+    single ball (tumble pushers, USP catchers and holds), a use nothing here vets (a hold on the toy
+    piano's legs failed in physics). Facet contacts keep their ids (they come first). Returns
+    ``(contacts, pairs, number dropped)``.
+    """
+    used = np.zeros(len(contacts["contact_id"]), dtype=bool)
+    used[pairs["contact_a"]] = used[pairs["contact_b"]] = True
+    keep = used | (np.asarray(contacts["facet_id"]) >= 0)
+    new_id = np.cumsum(keep) - 1  # increasing: pairs stay ordered, contact_a < contact_b
+    contacts = {k: v[keep] for k, v in contacts.items()}
+    contacts["contact_id"] = np.arange(int(keep.sum()))
+    pairs = {**pairs, "contact_a": new_id[pairs["contact_a"]], "contact_b": new_id[pairs["contact_b"]]}
+    return contacts, pairs, int((~keep).sum())
+
+
+def make_segments_inside_fn(mesh: trimesh.Trimesh, inset: float = 0.002):
+    """A callable ``(a (K, 3), b (K, 3)) -> (K,)`` True where the segment a->b (frame O, m), shortened
+    by ``inset`` at both ends, misses the surface: the squeeze passes through the object only.
+
+    The object's BVH is built once here; each segment is one python-fcl call (0.1-0.2 ms with its
+    set-up).
+    """
+    obj = _fcl_mesh(mesh)
+    req = fcl.CollisionRequest()
+
+    def inside(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        out = np.ones(len(a), dtype=bool)
+        for i in range(len(a)):  # one fcl call per pair (a few hundred)
+            d = b[i] - a[i]
+            length = np.linalg.norm(d)
+            if length <= 2 * inset:
+                out[i] = False
+                continue
+            R = se3.rotation_between(np.array([0.0, 0.0, 1.0]), d / length)
+            seg = fcl.CollisionObject(fcl.Cylinder(1e-5, length - 2 * inset),
+                                      fcl.Transform(R, 0.5 * (a[i] + b[i])))
+            out[i] = not fcl.collide(seg, obj, req, fcl.CollisionResult())
+        return out
+
+    return inside
 
 
 # ------------------------------------------------------------------------------------------ compute
@@ -535,6 +786,7 @@ def compute(mesh: trimesh.Trimesh, mass: float, params: Params) -> Analysis:
     stats = contacts.pop("_stats")
     t3 = time.perf_counter()
     pairs = find_contact_pairs(mesh, segments, contacts, params)
+    contacts, pairs, stats["curved_unpaired"] = drop_unpaired_curved_contacts(contacts, pairs)
     t4 = time.perf_counter()
     timings.update(hull=t1 - t0, segments=t2 - t1, sampling=t3 - t2, pairs=t4 - t3, total=t4 - t0)
     summary = {
@@ -553,7 +805,9 @@ def compute(mesh: trimesh.Trimesh, mass: float, params: Params) -> Analysis:
             "contact_facets": int(segments["contact_surface"].sum()),
             "samples": stats["samples"],
             "contacts": int(len(contacts["contact_id"])),
+            "curved_contacts": int((contacts["facet_id"] < 0).sum()),
             "pairs": int(len(pairs["pair_id"])),
+            "cone_pairs": int(((pairs["facet_a"] < 0) | (pairs["facet_b"] < 0)).sum()),
         },
         "filtered": {k: v for k, v in stats.items() if k != "samples"},
     }

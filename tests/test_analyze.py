@@ -1,6 +1,9 @@
 """Object analysis (§4.1) against cases with known answers."""
 
+from pathlib import Path
+
 import numpy as np
+import pybullet_data
 import pytest
 import trimesh
 
@@ -116,6 +119,10 @@ def test_toy_piano_has_flat_and_curved_facets_sp_on_its_legs_and_pairs():
     feet = np.argmax(n @ np.array([0, 0, -1.0]))
     assert r.placements["stable"][feet]
     assert len(r.placements["support_vertices"][feet]) >= 4
+    # Its only curved contacts, on the legs, pair with nothing and are dropped: its contacts and
+    # pairs are the flat facets' alone.
+    assert c["curved_contacts"] == 0 and c["cone_pairs"] == 0 and r.summary["filtered"]["curved_unpaired"] > 0
+    assert (r.contacts["facet_id"] >= 0).all() and (r.pairs["facet_a"] >= 0).all()
 
 
 def test_balls_at_concave_corners_collide():
@@ -154,3 +161,210 @@ def test_open_mesh_is_repaired_when_trimesh_can(tmp_path):
     holed.export(p)
     m = analyze.load_mesh(p)
     assert m.is_watertight and m.volume == pytest.approx(0.008)
+
+
+# ---------------------------------------------------------------------------------- curved contacts
+def test_area_in_sphere_matches_closed_forms():
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cases = [  # (centre, radius, area)
+        ((0.2, 0.2, 0.0), 0.1, np.pi * 0.1**2),  # the disk lies inside the triangle
+        ((0.2, 0.2, 0.06), 0.1, np.pi * (0.1**2 - 0.06**2)),  # the sphere cuts the plane in a smaller disk
+        ((0.3, 0.3, 0.0), 5.0, 0.5),  # the whole triangle inside
+        ((0.0, 0.0, 0.0), 0.1, np.pi * 0.1**2 / 4),  # a quarter disk at the right-angled corner
+        ((0.5, 0.0, 0.0), 0.1, np.pi * 0.1**2 / 2),  # a half disk on an edge
+        ((0.5, -0.1, 0.0), 0.1, 0.0),  # tangent to an edge from outside
+        ((3.0, 3.0, 0.0), 0.1, 0.0),
+    ]
+    for centre, radius, area in cases:
+        got = analyze.area_in_sphere(tri[None], np.array([centre]), radius)
+        assert got == pytest.approx([area], abs=1e-12), centre  # exact formula: rounding only
+
+
+def test_area_in_sphere_batch_equals_loop_and_monte_carlo(rng):
+    T = rng.normal(size=(6, 3, 3)) * 0.02
+    c = rng.normal(size=(6, 3)) * 0.01
+    batch = analyze.area_in_sphere(T, c, 0.02)
+    assert analyze.area_in_sphere(T[:0], c[:0], 0.02).shape == (0,)
+    u, v = rng.random((2, 200_000))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    for k in range(len(T)):
+        assert analyze.area_in_sphere(T[k:k + 1], c[k:k + 1], 0.02)[0] == batch[k]
+        pts = T[k, 0] + u[:, None] * (T[k, 1] - T[k, 0]) + v[:, None] * (T[k, 2] - T[k, 0])
+        area = np.linalg.norm(np.cross(T[k, 1] - T[k, 0], T[k, 2] - T[k, 0])) / 2
+        mc = area * np.mean(np.linalg.norm(pts - c[k], axis=1) <= 0.02)
+        # Monte Carlo with 2e5 samples: standard error <= area * 0.5 / sqrt(2e5) ~ 1.1e-3 area.
+        assert batch[k] == pytest.approx(mc, abs=5e-3 * area)
+
+
+def _footprint_areas(mesh: trimesh.Trimesh, p, rho: float) -> tuple[float, float, float]:
+    """Footprint area (m^2) at ``p`` on faces facing +z, sideways and -z."""
+    p = np.array([p])
+    fp = analyze.footprint(mesh, p, mesh.nearest.on_surface(p)[2], rho)
+    nz = mesh.face_normals[fp.triangle, 2]
+    return fp.area[nz > 0.99].sum(), fp.area[np.abs(nz) < 0.01].sum(), fp.area[nz < -0.99].sum()
+
+
+def test_footprint_covers_a_disk_turns_a_right_angled_edge_and_skips_a_thin_plate_far_side():
+    rho, d = 0.01, 0.004
+    box = trimesh.creation.box((0.2, 0.2, 0.2))
+    # The whole disk on a face (exact formula: rounding only).
+    assert _footprint_areas(box, (0.0, 0.0, 0.1), rho) == pytest.approx((np.pi * rho**2, 0, 0), abs=1e-15)
+    # d from an edge: the disk minus the circular segment beyond it, and half a disk on the side face.
+    h = np.arccos(d / rho)
+    segment = rho**2 * (h - np.sin(h) * np.cos(h))
+    expected = (np.pi * rho**2 - segment, np.pi * (rho**2 - d**2) / 2, 0)
+    assert _footprint_areas(box, (0.1 - d, 0.0, 0.1), rho) == pytest.approx(expected, abs=1e-15)
+    # On a 5 mm plate near its rim the bottom face is within reach around the rim but faces away.
+    top, side, bottom = _footprint_areas(trimesh.creation.box((0.2, 0.2, 0.005)), (0.1 - d, 0.0, 0.0025), rho)
+    assert top == pytest.approx(expected[0], abs=1e-15) and side > 0 and bottom == 0
+
+
+def test_curved_contact_normals_are_closer_to_a_spheres_radii_than_face_normals():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.15)
+    r = analyze.compute(sphere, 2.0, P)
+    c = r.contacts
+    assert (c["facet_id"] == -1).all() and len(c["facet_id"]) > 100
+    p = np.stack([c["px"], c["py"], c["pz"]], 1)
+    n = np.stack([c["nx"], c["ny"], c["nz"]], 1)
+    radial = p / np.linalg.norm(p, axis=1, keepdims=True)
+    dev = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, radial), -1, 1)))
+    face_dev = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", sphere.face_normals[c["triangle"]], radial), -1, 1)))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    # Subdivision 3: a face's normal is up to 4.4 deg (mean 2.3) off the radius at a sample; the 1 cm
+    # footprint averages the faces around it (measured: mean 0.4, max 0.8 deg).
+    assert dev.mean() < 0.3 * face_dev.mean() and dev.max() < 1.5
+
+
+# ------------------------------------------------------------------------------------------- pairs
+def _wedge(apex_deg: float, height: float = 0.3, depth: float = 0.2) -> trimesh.Trimesh:
+    """A prism along y whose cross-section is an isosceles triangle with its apex (``apex_deg``) on top."""
+    half = height * np.tan(np.radians(apex_deg) / 2)
+    prof = [(-half, 0.0), (half, 0.0), (0.0, height)]
+    return trimesh.convex.convex_hull([(x, y, z) for x, z in prof for y in (-depth / 2, depth / 2)])
+
+
+def _curved_contacts_at(p: np.ndarray, n: np.ndarray) -> dict:
+    """A contacts table of curved contacts (``facet_id`` -1) at points ``p`` with normals ``n`` (C, 3)."""
+    return {"contact_id": np.arange(len(p)), "facet_id": -np.ones(len(p), dtype=np.int64),
+            "triangle": np.zeros(len(p), dtype=np.int64), "px": p[:, 0], "py": p[:, 1], "pz": p[:, 2],
+            "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2]}
+
+
+def test_cone_pair_is_refused_when_the_squeeze_line_leaves_the_friction_cone():
+    # On a wedge the level squeeze line makes half the apex angle with each face's normal: 30 deg
+    # on a 60 deg wedge, outside the 21.8 deg cone; 15 deg on a 30 deg wedge, inside.
+    for apex, expected in ((60.0, 0), (30.0, 1)):
+        wedge = _wedge(apex)
+        half = 0.1 * np.tan(np.radians(apex) / 2)  # the faces at z = 0.2 (0.1 below the apex)
+        p = np.array([[-half, 0.0, 0.2], [half, 0.0, 0.2]])
+        n = wedge.face_normals[wedge.nearest.on_surface(p)[2]]
+        pairs = analyze.find_contact_pairs(wedge, analyze.superimposed_segments(wedge, P), _curved_contacts_at(p, n), P)
+        assert len(pairs["pair_id"]) == expected, apex
+        if expected:
+            assert pairs["angle"][0] == pytest.approx(np.radians(apex / 2), abs=1e-9)
+            assert (pairs["facet_a"] == -1).all() and (pairs["facet_b"] == -1).all()
+
+
+def test_ellipsoid_gets_many_well_spread_cone_pairs_inside_the_cone():
+    # The facet rule found 24 here: facet normals of a curved surface are rarely opposite within 15 deg.
+    ell = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ell.apply_scale((0.2, 0.13, 0.1))
+    r = analyze.compute(ell, 2.0, P)
+    c, pr = r.contacts, r.pairs
+    assert len(pr["pair_id"]) == P.max_pairs and (pr["facet_a"] == -1).all() and (pr["facet_b"] == -1).all()
+    p = np.stack([c["px"], c["py"], c["pz"]], 1)
+    n = np.stack([c["nx"], c["ny"], c["nz"]], 1)
+    u = p[pr["contact_b"]] - p[pr["contact_a"]]
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    # Inside both cones (the line against each inward normal), as the angle column says.
+    na, nb = n[pr["contact_a"]], n[pr["contact_b"]]
+    ang = np.arccos(np.minimum(-np.einsum("ij,ij->i", u, na), np.einsum("ij,ij->i", u, nb)))
+    np.testing.assert_allclose(pr["angle"], ang, atol=1e-12)
+    assert (ang <= np.radians(P.cone_angle_deg)).all()
+    assert (pr["width"] > 2 * P.ball_radius).all()
+    # Spread: more than half the contacts are used, and squeezes run along each of the three axes.
+    assert len(np.unique(np.concatenate([pr["contact_a"], pr["contact_b"]]))) > 0.5 * len(p)
+    assert (np.abs(u).max(axis=0) > np.cos(np.radians(5))).all()
+
+
+def test_cylinder_pairs_its_caps_by_facets_and_its_side_by_cones_off_the_caps_rims():
+    h, r_cyl = 0.3, 0.1
+    r = analyze.compute(trimesh.creation.cylinder(r_cyl, h, sections=64), 2.0, P)
+    c, pr = r.contacts, r.pairs
+    curved = c["facet_id"] < 0
+    assert (np.abs(c["nz"][~curved]) == 1).all() and (np.abs(c["nz"][curved]) < 1e-9).all()
+    # A curved contact keeps the boundary margin from the flat caps, as a cap's contacts keep it from the rim.
+    assert np.abs(c["pz"][curved]).max() <= h / 2 - P.boundary_margin
+    assert r.summary["filtered"]["curved_near_flat"] > 0
+    facet = (pr["facet_a"] >= 0) & (pr["facet_b"] >= 0)
+    assert facet.sum() > 5 and (~facet).sum() > 50
+    p = np.stack([c["px"], c["py"], c["pz"]], 1)
+    np.testing.assert_allclose(np.abs(p[pr["contact_b"][facet], 2] - p[pr["contact_a"][facet], 2]), h, atol=1e-9)
+    assert (pr["facet_a"][~facet] == -1).all() and (pr["facet_b"][~facet] == -1).all()
+    # Every curved contact kept is used by a pair, and the renumbered ids still point at curved contacts.
+    used = np.unique(np.concatenate([pr["contact_a"][~facet], pr["contact_b"][~facet]]))
+    np.testing.assert_array_equal(used, np.flatnonzero(curved))
+    np.testing.assert_array_equal(c["contact_id"], np.arange(len(curved)))
+
+
+def test_cube_keeps_exactly_its_opposite_face_pairs():
+    r = analyze.compute(trimesh.creation.box((0.25, 0.25, 0.25)), 2.0, P)
+    assert r.summary["counts"]["curved_contacts"] == 0 and r.summary["counts"]["cone_pairs"] == 0
+    seg_n = np.stack([r.segments["nx"], r.segments["ny"], r.segments["nz"]], 1)
+    na = seg_n[r.pairs["facet_a"]]
+    np.testing.assert_allclose(np.einsum("ij,ij->i", na, seg_n[r.pairs["facet_b"]]), -1.0, atol=1e-9)
+    p = np.stack([r.contacts["px"], r.contacts["py"], r.contacts["pz"]], 1)
+    d = p[r.pairs["contact_b"]] - p[r.pairs["contact_a"]]
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", d, na)), 0.25, atol=1e-9)  # the cube's size apart
+
+
+def test_cone_pairs_fill_max_pairs_but_facet_pairs_are_never_capped():
+    sphere = analyze.compute(trimesh.creation.icosphere(subdivisions=3, radius=0.15), 2.0,
+                             analyze.Params(max_pairs=30))
+    assert sphere.summary["counts"]["pairs"] == 30
+    box = analyze.compute(trimesh.creation.box((0.3, 0.2, 0.4)), 2.0, analyze.Params(max_pairs=10))
+    assert box.summary["counts"]["pairs"] == analyze.compute(trimesh.creation.box((0.3, 0.2, 0.4)), 2.0, P) \
+        .summary["counts"]["pairs"] > 10
+
+
+def test_spread_pairs_takes_one_per_cluster_from_the_best_and_skips_refused_pairs(rng):
+    # 10 clusters of 5 nearly equal pairs (1 mm apart) whose clusters lie 0.1 m or more apart.
+    centres = np.stack([np.arange(10) * 0.1, np.zeros(10), np.zeros(10)], 1)
+    pa = np.repeat(centres, 5, axis=0) + rng.normal(size=(50, 3)) * 1e-3
+    pb = pa + np.array([0.0, 0.0, 0.3])
+    angle = rng.random(50)
+    kept = analyze._spread_pairs(pa, pb, angle, 10, lambda a, b: np.ones(len(a), bool))
+    assert sorted(kept // 5) == list(range(10))
+    assert np.argmin(angle) in kept  # sampling starts at the largest margin
+    # The same, ends swapped: pairs are unordered.
+    odd = (np.arange(50) % 2 == 1)[:, None]
+    swapped = analyze._spread_pairs(np.where(odd, pb, pa), np.where(odd, pa, pb), angle, 10,
+                                    lambda a, b: np.ones(len(a), bool))
+    assert sorted(swapped // 5) == list(range(10))
+    # A validity check that refuses cluster 0 entirely: nine clusters, then a second pick elsewhere.
+    refused = analyze._spread_pairs(pa, pb, angle, 10, lambda a, b: a[:, 0] > 0.05)
+    assert len(refused) == 10 and not (refused < 5).any() and len(np.unique(refused // 5)) == 9
+    assert len(analyze._spread_pairs(pa[:0], pb[:0], angle[:0], 10, lambda a, b: a[:, 0] > 0)) == 0
+
+
+def test_bunny_gets_cone_pairs_with_room_for_both_balls_and_the_squeeze_inside():
+    path = Path(pybullet_data.getDataPath()) / "bunny.obj"
+    bunny = analyze.load_mesh(path, 0.45 / analyze.load_mesh(path).extents.max())
+    r = analyze.compute(bunny, 3.0, P)
+    c, pr = r.contacts, r.pairs
+    assert len(pr["pair_id"]) >= 50  # the facet rule alone found 2
+    assert r.summary["filtered"]["curved_ball_collision"] > 0  # bumps a ball cannot touch were refused
+    p = np.stack([c["px"], c["py"], c["pz"]], 1)
+    n = np.stack([c["nx"], c["ny"], c["nz"]], 1)
+    # Every ball (centre p + r n) clears the surface: distance >= 0.98 r (_balls_free's tangency allowance).
+    depth = trimesh.proximity.signed_distance(bunny, p + P.ball_radius * n)  # > 0 inside the mesh
+    assert (-depth >= 0.98 * P.ball_radius - 1e-9).all()
+    inside = analyze.make_segments_inside_fn(bunny)
+    assert inside(p[pr["contact_a"]], p[pr["contact_b"]]).all()
+    assert (pr["angle"] <= np.radians(P.cone_angle_deg)).all()
+    # Deterministic: the same input gives the same tables.
+    again = analyze.compute(bunny, 3.0, P)
+    for table, other in ((c, again.contacts), (pr, again.pairs)):
+        for k in table:
+            assert np.array_equal(table[k], other[k]), k

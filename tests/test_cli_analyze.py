@@ -1,7 +1,9 @@
 """The CLI end to end: analyze, show, diff, errors; artifacts byte-identical across runs."""
 
 
+import numpy as np
 import pytest
+import trimesh
 from typer.testing import CliRunner
 
 from pivotcli.app import app
@@ -47,6 +49,25 @@ def test_analyze_box_end_to_end_then_show_and_diff(box_path, tmp_path):
     assert invoke("analyze", box_path, "--mass", "2", "--spacing", "0.05", "--out", out3).exit_code == 0
     r = invoke("diff", out / "contacts.parquet", out3 / "contacts.parquet")
     assert r.exit_code == 1 and "rows" in r.output
+
+
+def test_analyze_curved_object_is_byte_identical_across_runs_and_takes_the_pair_options(tmp_path):
+    mesh = tmp_path / "capsule.stl"
+    trimesh.creation.capsule(height=0.25, radius=0.1).export(mesh)
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        r = invoke("analyze", mesh, "--mass", "2", "--out", out)
+        assert r.exit_code == 0, r.output
+    for p in outs[0].glob("*.parquet"):
+        assert p.read_bytes() == (outs[1] / p.name).read_bytes(), p.name
+    pairs = artifacts.read_table(outs[0] / "pairs.parquet", "pairs")
+    assert len(pairs) == 150 and (pairs["facet_a"] == -1).all()  # the default max_pairs, all cone pairs
+    out = tmp_path / "c"
+    r = invoke("analyze", mesh, "--mass", "2", "--max-pairs", "20", "--cone-angle", "10", "--out", out)
+    assert r.exit_code == 0, r.output
+    pairs = artifacts.read_table(out / "pairs.parquet", "pairs")
+    assert len(pairs) == 20 and (pairs["angle"] <= np.radians(10)).all()
+    assert pairs.meta["params"]["max_pairs"] == 20 and pairs.meta["params"]["cone_angle_deg"] == 10
 
 
 @pytest.mark.parametrize(
