@@ -335,3 +335,24 @@ def test_catches_wait_under_the_overhang_and_holds_press_from_above(builds):
     for n, s in zip(edges["node_b"][into].tolist(), edges["status"][into].tolist(), strict=True):
         if st[n] != "ok":
             assert s != "ok"  # the catch's reason, or the pusher's when that failed first
+
+
+def test_a_tumble_the_motion_stage_cannot_do_is_backtracked_in_the_search(builds, tmp_path, monkeypatch):
+    """``pivot plan`` asks ``trajectory.check_tumble`` of every tumble it walks: when it fails (here made
+    to, as for a tumble with no catcher), the edge is removed with that reason and the search goes on;
+    Exp. 3's goal is on another face, so no plan is left. As it is, Exp. 3's plan passes the check."""
+    from stages import trajectory
+
+    assert builds.plan("exp3_obstacle")["counts"]["tumble"] == 1  # its tumble passed check_tumble
+    b = builds.build("exp3_obstacle")
+    asked = []
+
+    def refuse(env, q, step, X_from, X_to):
+        asked.append(step["edge"])
+        return "no_catcher", "step 0: no catcher works (made to fail)"
+
+    monkeypatch.setattr(trajectory, "check_tumble", refuse)
+    p = plan.run(builds.scene("exp3_obstacle"), builds.analysis, b / "sample", b / "graph", tmp_path / "plan.json",
+                 plan.Params())
+    assert asked and p["status"] == "infeasible"
+    assert any(e["primitive"] == "tumble" and e["reason"] == "no_catcher" for e in p["log"])
