@@ -361,10 +361,11 @@ def _submit(out: Path, todo: list, prm: SweepParams, rows: dict, on_case) -> int
 
 def write_results(path: Path, rows: list[dict], prm: SweepParams) -> None:
     """``results.parquet``: one row per (case, seed), columns :data:`RESULT_FIELDS`."""
-    cols = {f.name: np.array([r[f.name] for r in rows]) if rows else np.zeros(0) for f in RESULT_FIELDS}
-    for f in RESULT_FIELDS:  # typed empty/str columns
-        if rows and isinstance(rows[0][f.name], str):
-            cols[f.name] = np.array([r[f.name] for r in rows], dtype=object)
+    # Each column takes the type of its value in a blank row; a NaN stored in case.json reads back None.
+    blank = blank_row({"case": "", "object": "", "kind": "", "reachable": False, "reason": ""}, 0)
+    types = {str: object, bool: bool, int: np.int64, float: np.float64}
+    cols = {f.name: np.array([float("nan") if r[f.name] is None else r[f.name] for r in rows],
+                             dtype=types[type(blank[f.name])]) for f in RESULT_FIELDS}
     meta = artifacts.make_meta("benchmark_results", {**asdict(prm)}, {"suite": path.parent / "suite.json"},
                                "benchmark run")
     artifacts.write_table(path, cols, RESULT_FIELDS, meta)
