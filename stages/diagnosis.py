@@ -14,12 +14,15 @@ them in this order; ``causes`` lists every one that holds and ``cause`` is the f
 4. ``goal_not_connected``: the goal pose is not in the start's component of the lattice (pivot and
    tumble links, grasps ignored, the ablations applied): none of the pivots that join it to the
    lattice (``stages.poses._insert_goal``) starts from a lattice pose;
-5. the grasp graph is cut: ``pivot_rejected``, ``regrasp_rejected``, ``tumble_rejected`` or
-   ``pusher_out_of_reach`` after the primitive of most refused edges that would lead on from the
-   nodes the start reaches (the frontier; an edge removed by backtracking counts with its
-   motion-level reason, one an ablation drops as ``ablation``);
-6. ``no_shared_grasp``: no refused edge leads on: the lattice neighbours of the reached poses have no
-   grasp with the same contacts as theirs (a pivot keeps its grasp, §5.1).
+5. the grasp graph is cut: each lattice link from a pose the start reaches to one it does not is
+   classed (:func:`link_classes`): ``next_pose_has_no_grasp``; ``no_shared_grasp``, no edge joins
+   the two poses (a pivot keeps its grasp, §5.1, and the two have none in common); or by the
+   primitive of most of the refused edges between them, ``pivot_rejected``, ``tumble_rejected`` or
+   ``pusher_out_of_reach`` (an edge removed by backtracking counts with its motion-level reason, one
+   an ablation drops as ``ablation``). The cause is the class of the first link that the nearest
+   lattice route from the reached poses to the goal takes out of them (the first barrier on the way);
+   all links are counted in ``links_leading_on``. With no such route, the primitive of most refused
+   edges leading on from the reached nodes (USP regrasps, catches).
 
 The plan's ``reason`` takes a fixed phrase per cause (:data:`REASONS`), since the benchmark turns it
 into a reason code; the numbers stay in the diagnosis dict, and ``detail`` says the main ones in one
@@ -47,6 +50,7 @@ REASONS = {
     "pivot_rejected": "the pivots that lead on are rejected",
     "regrasp_rejected": "the regrasps that lead on are rejected",
     "no_shared_grasp": "no grasp is shared with the next poses",
+    "next_pose_has_no_grasp": "the poses that lead on have no grasp",
 }
 #: Reason families of a tumble whose pushing arm cannot reach or push.
 PUSHER_REASONS = ("ik_unreachable", "joint_limit", "no_pusher_contact")
@@ -147,14 +151,64 @@ def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -
             "cause": why}, why
 
 
-def _cut_cause(t: Tables, L: nx.Graph, reached_poses: set, leads_on: dict) -> tuple[str, dict]:
-    """The cause when the graph is cut past the poses the start reaches (module docstring, 5–6)."""
-    if leads_on:
-        prim = max(leads_on, key=lambda p: (sum(leads_on[p].values()), p))
-        return (tumble_cause(leads_on[prim]) if prim == "tumble" else f"{prim}_rejected"), {}
-    nxt = {q for p in reached_poses if p in L for q in L.neighbors(p)} - reached_poses
-    with_grasp = np.isin(np.fromiter(nxt, int, len(nxt)), t.nodes["pose_id"][t.nodes["kind"] == "grasp"])
-    return "no_shared_grasp", {"next_poses": len(nxt), "next_poses_without_grasp": int(np.sum(~with_grasp))}
+def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
+    """The lattice links from a reached pose to one not reached, by why the search cannot take them:
+    the primitive and reason family of most of the refused edges between the two poses
+    (``pivot:unstable``, ``tumble:ik_unreachable``, ...), or, with no edge between them,
+    ``next_pose_has_no_grasp`` or ``no_shared_grasp`` (a pivot keeps its grasp and they share none)."""
+    pose_of = t.nodes["pose_id"]
+    grasped = set(pose_of[t.nodes["kind"] == "grasp"].tolist())
+    pa, pb = pose_of[t.edges["node_a"]], pose_of[t.edges["node_b"]]
+    between: dict[tuple[int, int], list[int]] = {}
+    for e in np.flatnonzero(pa != pb):  # edges that move the object: their pose pair
+        between.setdefault((int(min(pa[e], pb[e])), int(max(pa[e], pb[e]))), []).append(int(e))
+    out: dict[str, int] = {}
+    for p in reached_poses:
+        for q in (L.neighbors(p) if p in L else ()):
+            if q in reached_poses:
+                continue
+            edges = between.get((min(p, q), max(p, q)), [])
+            if edges:  # refused (else q would be reached): by what most of them are refused for
+                fam, n = np.unique([f"{t.edges['primitive'][e]}:{family(status[e])}" for e in edges],
+                                   return_counts=True)
+                why = str(fam[np.argmax(n)])
+            else:
+                why = "no_shared_grasp" if q in grasped else "next_pose_has_no_grasp"
+            out[why] = out.get(why, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def route_link(L: nx.Graph, reached_poses: set, goal_pose: int) -> tuple[int, int] | None:
+    """The first link the nearest lattice route from the reached poses to the goal takes out of them
+    (multi-source breadth first over the lattice), or None when no route leaves them."""
+    src = [p for p in reached_poses if p in L]
+    if goal_pose not in L or not src:
+        return None
+    try:
+        path = nx.multi_source_dijkstra_path(L, src)[goal_pose]
+    except KeyError:  # the goal is not in the reached poses' component
+        return None
+    return (path[0], path[1]) if len(path) > 1 else None
+
+
+def _cut_cause(t: Tables, L: nx.Graph, reached_poses: set, leads_on: dict, status: np.ndarray) -> tuple[str, dict]:
+    """The cause when the graph is cut past the poses the start reaches (module docstring, 5–6): the
+    class (:func:`link_classes`) of the first link the nearest lattice route to the goal takes out of
+    them; without one, the primitive of most refused edges leading on."""
+    links = link_classes(t, L, reached_poses, status)
+    facts = {"links_leading_on": links}
+    first = route_link(L, reached_poses, t.goal_pose)
+    if first is not None:
+        cls = next(iter(link_classes(t, L.subgraph(first), {first[0]}, status)))
+        facts["route_link"] = {"poses": [int(first[0]), int(first[1])], "class": cls}
+        if ":" not in cls:
+            return cls, facts
+        prim, fam = cls.split(":")
+        return (tumble_cause({fam: 1}) if prim == "tumble" else f"{prim}_rejected"), facts
+    if not leads_on:
+        return "no_shared_grasp", facts
+    prim = max(leads_on, key=lambda p: (sum(leads_on[p].values()), p))
+    return (tumble_cause(leads_on[prim]) if prim == "tumble" else f"{prim}_rejected"), facts
 
 
 def diagnose(t: Tables, G: nx.DiGraph, start: int, goal: int, ablated: np.ndarray, removed: dict[int, str],
@@ -186,7 +240,7 @@ def diagnose(t: Tables, G: nx.DiGraph, start: int, goal: int, ablated: np.ndarra
                                for p in ("pivot", "regrasp", "tumble")}
     facts["leads_on_rejected"] = frontier(t, status, reached)
     if not causes:
-        cut, more = _cut_cause(t, L, reached_poses, facts["leads_on_rejected"])
+        cut, more = _cut_cause(t, L, reached_poses, facts["leads_on_rejected"], status)
         causes, facts = [cut], {**facts, **more}
     return {"cause": causes[0], "causes": causes, **facts, "detail": detail(causes[0], facts)}
 
@@ -200,7 +254,7 @@ def detail(cause: str, d: dict) -> str:
     if cause.endswith("_not_sp"):
         w = cause.split("_")[0]
         return f"{w} pose {d[w]['pose_id']} is {d[w]['support']} on placement {d[w]['placement_id']}: no free node"
-    if cause.endswith("_has_no_grasp"):
+    if cause in ("start_has_no_grasp", "goal_has_no_grasp"):
         w = cause.split("_")[0]
         return f"{w} pose: 0 grasps of {d[w]['candidates']} candidates ({_top(d[w]['rejected'])})"
     f = d.get("tumbles_onto_goal_face", {})
@@ -213,8 +267,9 @@ def detail(cause: str, d: dict) -> str:
         return (f"no pivot sequence joins the goal pose ({d['goal']['grasps']} grasps) to the start's lattice of "
                 f"{d['lattice_poses']} poses")
     reached = f"the start reaches {d['reached']['poses']} poses ({d['reached']['nodes']} nodes)"
-    if cause == "no_shared_grasp":
-        return (f"{reached}; of their {d['next_poses']} next poses {d['next_poses_without_grasp']} have no grasp, "
-                "the others none with the same contacts")
+    links = d.get("links_leading_on", {})
     leads = "; ".join(f"{p} {sum(c.values())} ({_top(c)})" for p, c in d["leads_on_rejected"].items())
-    return f"{reached}; rejected edges leading on: {leads}"
+    route = d.get("route_link")
+    reached += f"; the nearest route to the goal leaves them by {route['class']}" if route else ""
+    return (f"{reached}; lattice links leading on: {_top(links, 4)}"
+            + (f"; rejected edges leading on: {leads}" if leads else ""))

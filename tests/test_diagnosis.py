@@ -67,7 +67,7 @@ def test_a_refused_release_at_the_goal_is_regrasp_rejected():
 def test_no_pivot_candidate_between_grasps_is_no_shared_grasp():
     d = infeasible(toy(pivot12_exists=False))["diagnosis"]
     assert d["cause"] == "no_shared_grasp" and d["leads_on_rejected"] == {}
-    assert d["next_poses"] == 1 and d["next_poses_without_grasp"] == 0
+    assert d["links_leading_on"] == {"no_shared_grasp": 1}
 
 
 def test_a_usp_start_is_start_not_sp():
@@ -144,10 +144,15 @@ def test_scene_tilting_sixty_degrees_rejects_the_pivots_that_lead_on(piano):
     assert d["start"]["grasps"] > 0 and d["goal"]["grasps"] > 0 and d["goal_connected"]
 
 
-def test_scene_tumbles_away_from_the_robot_are_out_of_the_pushers_reach(piano):
+def test_scene_on_its_back_names_the_first_barrier_of_the_nearest_route_to_the_goal(piano):
+    """The piano to be laid on its back 0.1 m further: the nearest lattice route out of what the start
+    reaches pivots onto a pose with no grasp (the cause), and the tumbles that would lead on are out of
+    the pushing arm's reach (counted among the links leading on)."""
     p = plan_scene(piano, "push", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
                                      "planner.max_poses": 40})
     d = p["diagnosis"]
-    assert p["reason"] == "no path in the graph: the pushing arm cannot reach the tumbles that lead on"
+    assert p["reason"] == "no path in the graph: the poses that lead on have no grasp"
+    assert d["route_link"]["class"] == "next_pose_has_no_grasp"
+    assert d["links_leading_on"].get("tumble:ik_unreachable", 0) >= 1
     tumbles = d["leads_on_rejected"]["tumble"]
     assert tumbles.get("ik_unreachable", 0) + tumbles.get("joint_limit", 0) >= sum(tumbles.values()) / 2
