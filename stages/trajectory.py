@@ -35,8 +35,9 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
    ``stages.transit.plan_transit``; into SP from its rest posture when the plan first moves it there,
    ``{catcher}_before``, out of the object's way); both contacts switch on together (a squeeze from
    both sides);
-2. *push*: both rotate the object to the release angle (the plan's ``push_angle`` of
-   ``stages.graph``, at least ``release_past_tip`` past the angle where the CoM crosses the axis);
+2. *push*: both rotate the object to the release angle (``stages.graph.release_angle``: its
+   ``push_angle``, at least ``release_past_tip`` past the angle where the CoM crosses the axis, where
+   the graph's pusher check ends);
 3. *release*: the object pauses while the pusher's force ramps out and the catcher takes the load;
 4. *catch*: the catcher alone lowers the object;
 5. the catcher lets go, in one of three ways:
@@ -92,7 +93,7 @@ from stages import artifacts, mpc, poses, se3, stability, transit
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.graph import Params as GraphParams
-from stages.graph import pusher_motion
+from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import load_robot
@@ -114,8 +115,6 @@ class TumbleParams:
     release_dwell: float = 1.2
     #: From the release angle to the end of the catch, the catcher alone.
     catch_time: float = 4.0
-    #: The pusher lets go at least this far past the angle where the CoM crosses over the axis.
-    release_past_tip: float = np.radians(10.0)
     #: A catcher that would end under the object stops this far short of the landing, then slides out.
     slide_short: float = np.radians(6.0)
     slide_time: float = 0.15
@@ -805,7 +804,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if np.abs(roll.X_end - X_to).max() > 1e-5:
         raise InputError(f"plan step {k}: rolling over edge ({e0}, {e1}) does not land on X_WO_to")
     found, c_found, q_push = pusher_motion(robot, env.collide, model, X_from, X_to, e0, e1, env.p_O, env.n_O, r,
-                                           gp, arms=(pusher,))
+                                           gp, push_limits(env.scene, gp), arms=(pusher,))
     if found is None or c_found != c_p:
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
     usp = "catcher" in step  # into USP: the plan's catcher holds the object at the end
@@ -821,7 +820,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if not len(candidates):
         raise TumbleError("no_catcher", f"step {k}: no contact on the landing face")
 
-    th_r = release_angle(model, roll, gp, P)
+    th_r = release_angle(model, roll, gp)
     grid = np.linspace(0.0, roll.total, 721)
     why, pusher_paths, found = "no candidate", {}, None
     half = np.asarray(env.scene.table.size) / 2
@@ -941,14 +940,6 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
-
-
-def release_angle(model, roll: Roll, gp: GraphParams, P: TumbleParams) -> float:
-    """The pusher's release angle: the plan's push, and ``release_past_tip`` past the angle where the
-    CoM crosses over the axis."""
-    grid = np.linspace(0.0, roll.total, 721)
-    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
-    return max(gp.push_angle, th_tip + P.release_past_tip)
 
 
 def tumble_profile(roll: Roll, th_r: float, th_c: float, P: TumbleParams, dt: float):

@@ -589,8 +589,9 @@ def _tumble_plan(analysis, table_size, start_xy=(-0.05, 0.12)):
     con = tables["contacts"]
     p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    gp = graph.Params()
     arm, c, q_push = graph.pusher_motion(robot, collide, model, X_from, X_to, e0, e1, p_O, n_O,
-                                         scene.robot.ball_radius, graph.Params(), arms=("left",))
+                                         scene.robot.ball_radius, gp, graph.push_limits(scene, gp), arms=("left",))
     assert arm == "left", c
     home = np.zeros(robot.arm("left").dof)
     path = transit.plan_transit(robot, collide, "left", home, q_push[0], home, X_from,
