@@ -53,10 +53,11 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
      holding it alone; the plan's next step (a regrasp) hands the object over to a grasp.
 
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
-normal within ``catch_cone`` of the landing direction), largest lever arm about the axis first (less
-the offset from the CoM along the axis), the first whose joint path (IK along the whole motion,
-seeded step to step), rolling and collisions (the batched checker of ``stages.robot``, at every
-other row) pass. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
+normal within ``catch_cone`` of the landing direction) whose ball the catcher reaches at the start and
+at the release, largest lever arm about the axis first (less the offset from the CoM along the axis),
+the first whose joint path (IK along the whole motion, seeded step to step), rolling and collisions
+(the batched checker of ``stages.robot``, at every other row) pass and with which the tumbling MPC is
+feasible. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
 object (``stages.execute`` shifts its target by :func:`rolling_shift`), 2-4 cm over a 90° tumble; its
 contact must stay ``roll_margin`` inside its face, else the joints are solved by :func:`ik_follow`,
 which turns the ball with the object about the turning axis (the pusher's always are). Into USP the
@@ -84,6 +85,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -689,8 +691,11 @@ def _contact_at(env: _Env, arm: str, q: np.ndarray, X: np.ndarray, where: str) -
     return c
 
 
-def _catch_candidates(env: _Env, roll: Roll, params: TumbleParams) -> np.ndarray:
-    """Contact ids on the landing face, best catcher first (module docstring)."""
+def _catch_candidates(env: _Env, roll: Roll, catcher: str, th_r: float, params: TumbleParams) -> np.ndarray:
+    """Contact ids on the landing face, best catcher first (module docstring), of those whose ball the
+    ``catcher`` arm reaches (IK of the ball centre) both at the start and at the release angle ``th_r``:
+    it holds the object all the way between, whatever its mode. (Ranked first and checked after, the
+    few best were often out of reach where the object tips away from the robot, and no other was tried.)"""
     d_O = roll.X_end[2, :3] * -1.0  # the landing direction (W -z) in O: R^T (0, 0, -1)
     cand = np.flatnonzero(env.n_O @ d_O >= np.cos(params.catch_cone))
     X0 = roll.X_seg[0]
@@ -700,8 +705,13 @@ def _catch_candidates(env: _Env, roll: Roll, params: TumbleParams) -> np.ndarray
     along = rel @ a_O
     lever = np.linalg.norm(rel - along[:, None] * a_O, axis=1)
     off = np.abs((env.p_O[cand] - env.model.com) @ a_O)
-    order = np.lexsort((cand, -(lever - 0.5 * off)))
-    return cand[order][: params.catch_candidates]
+    cand = cand[np.lexsort((cand, -(lever - 0.5 * off)))]
+    ball_O = env.p_O[cand] + env.r * env.n_O[cand]
+    X = roll.poses([0.0, th_r])
+    balls = np.concatenate([se3.transform_points(X[0], ball_O), se3.transform_points(X[1], ball_O)])
+    res = env.robot.ik(catcher, balls, rng=np.random.default_rng(0))
+    reach = res.ok.reshape(2, -1).all(axis=0)
+    return cand[reach][: params.catch_candidates]
 
 
 def _collision_free(env: _Env, q_l, q_r, X, touching, every: int) -> tuple[bool, str]:
@@ -790,6 +800,107 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     return q_c, X_out, tgt_out, q_out
 
 
+class _Catch(NamedTuple):
+    """A catch that works (:func:`_find_catch`): the catcher's contact, its mode (module docstring, 5.)
+    and the angle its catch ends at, the tumble's profile ``t_prof, theta, on_p`` and reference
+    ``X_ref``, the pusher's joints ``q_p`` (its first ``n_rel`` rows pushing), the catcher's IK kind,
+    joints ``q_c`` and way out ``X_out, tgt_out, q_out``, and the MPC's ``(X, f_eef, f_table, errors)``."""
+
+    c: int
+    mode: str
+    th_c: float
+    t_prof: np.ndarray
+    theta: np.ndarray
+    on_p: np.ndarray
+    n_rel: int
+    X_ref: np.ndarray
+    q_p: np.ndarray
+    ik: str
+    q_c: np.ndarray
+    X_out: np.ndarray
+    tgt_out: np.ndarray
+    q_out: np.ndarray
+    mpc: tuple
+
+
+def _catch_mode(env: _Env, roll: Roll, c: int, usp: bool, X_to: np.ndarray, P: TumbleParams) -> tuple[str, float]:
+    """How a catcher on contact ``c`` lets go (``hold``, ``place`` or ``slide``) and the roll angle at
+    which its catch ends (module docstring, 5.)."""
+    r, half = env.r, np.asarray(env.scene.table.size) / 2
+    b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
+    if usp:
+        return "hold", roll.total
+    if np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
+        return "place", roll.total
+    grid = np.linspace(0.0, roll.total, 721)  # slide out short of the landing, the ball above the table
+    z = _ball_centres(roll.poses(grid), env.p_O[c], env.n_O[c], r)[:, 2]
+    high = grid[(z >= r + P.table_clearance) & (grid <= roll.total - P.slide_short)]
+    return "slide", float(high.max()) if len(high) else 0.0
+
+
+def _find_catch(env: _Env, roll: Roll, k: int, pusher: str, c_p: int, q_p0: np.ndarray, candidates, usp: bool,
+                X_to: np.ndarray, q_end: np.ndarray, th_r: float) -> _Catch:
+    """The first of ``candidates`` (best first) whose catch works: its mode leaves a catch past the
+    release, its joints pass (:func:`_catcher_motion`, plain IK first, then turning with the object)
+    and the tumbling MPC with the pusher's contact ``c_p`` is feasible (:func:`tumble_mpc`; a catcher
+    the MPC refuses, e.g. one so high on the landing face that its squeeze keeps the push from
+    starting, gives way to the next instead of failing the tumble). The pusher follows its contact
+    from ``q_p0`` by :func:`ik_follow`. Raises :class:`TumbleError`: the pusher's IK code when it
+    fails, ``mpc_infeasible`` when the catchers whose joints pass all fail the MPC, else
+    ``no_catcher``; both name each candidate's failure."""
+    P, dt, robot = env.params.tumble, env.params.mpc.dt, env.robot
+    catcher, fails, mpc_why, pusher_paths = _other(pusher), [], None, {}
+    for c in candidates:  # a handful, best first
+        mode, th_c = _catch_mode(env, roll, c, usp, X_to, P)
+        if th_c < th_r + np.radians(5.0):
+            fails.append(f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release")
+            continue
+        t_prof, theta, on_p = tumble_profile(roll, th_r, th_c, P, dt)
+        X_ref = roll.poses(theta)
+        n_rel = int(np.count_nonzero(on_p))
+        if n_rel not in pusher_paths:  # the same for every catcher
+            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], env.r)
+            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_p0,
+                                            env.params.ik_every)
+        q_p, why_p = pusher_paths[n_rel]
+        if why_p != "ok":
+            raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
+        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, q_p.shape[1]))])
+        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
+        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
+        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
+        # with the object (no rolling at all), else about the turning axis only (rolling along it).
+        for follow in (False, True):
+            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_end, follow, P)
+            if not isinstance(got, str):
+                break
+        if isinstance(got, str):
+            fails.append(f"contact {c}: {got}")
+            continue
+        out = tumble_mpc(env.scene.object.mass, env.inertia, env.model, roll, theta, t_prof, X_ref, on_p,
+                         env.p_O[[c_p, c]], env.n_O[[c_p, c]], env.mp)
+        if isinstance(out, str):
+            mpc_why = mpc_why or _mpc_failure(env, roll, k, c, mode, out)
+            fails.append(f"contact {c}: the tumbling MPC fails")
+            continue
+        ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
+        return _Catch(c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got, out)
+    tried = "; ".join(fails) or "no candidate"
+    if mpc_why is not None:  # a catcher's joints pass: the forces are what fail
+        raise TumbleError("mpc_infeasible", f"{mpc_why} (catchers tried: {tried})")
+    raise TumbleError("no_catcher", f"step {k}: no catcher works ({tried})")
+
+
+def _mpc_failure(env: _Env, roll: Roll, k: int, c: int, mode: str, out: str) -> str:
+    """Why the tumbling MPC refuses catcher ``c`` (into USP, that its contact cannot hold the fall)."""
+    why = f"step {k}: {out}"
+    if mode == "hold" and "after the release" in out:
+        off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
+        why += (f": the destination grasp's catching contact {c} (its normal {off:.0f} deg from the "
+                f"landing face's) cannot hold the object alone")
+    return why
+
+
 def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
     """Rows of one tumble step (module docstring, "Tumble"), appended to ``tl``; returns a summary
     (catcher, contact, mode, angles, MPC figures). Raises :class:`TumbleError` when it cannot be done."""
@@ -816,69 +927,16 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
         candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
     else:
-        candidates = _catch_candidates(env, roll, P)
+        candidates = _catch_candidates(env, roll, catcher, release_angle(model, roll, gp), P)
     if not len(candidates):
-        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face")
+        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face within the {catcher} arm's reach")
 
     th_r = release_angle(model, roll, gp)
-    grid = np.linspace(0.0, roll.total, 721)
-    why, pusher_paths, found = "no candidate", {}, None
-    half = np.asarray(env.scene.table.size) / 2
-    for c in candidates:  # a handful, best first
-        b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
-        if usp:
-            mode, th_c = "hold", roll.total
-        elif np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
-            mode, th_c = "place", roll.total
-        else:  # slide out short of the landing, with the ball above the table
-            z = _ball_centres(roll.poses(grid), env.p_O[c], env.n_O[c], r)[:, 2]
-            high = grid[(z >= r + P.table_clearance) & (grid <= roll.total - P.slide_short)]
-            mode, th_c = "slide", float(high.max()) if len(high) else 0.0
-        if th_c < th_r + np.radians(5.0):
-            why = f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release"
-            continue
-        t_prof, theta, on_p = tumble_profile(roll, th_r, th_c, P, dt)
-        X_ref = roll.poses(theta)
-        n_rel = int(np.count_nonzero(on_p))
-        if n_rel not in pusher_paths:  # the same for every catcher
-            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], r)
-            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0],
-                                            env.params.ik_every)
-        q_p, why_p = pusher_paths[n_rel]
-        if why_p != "ok":
-            raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
-        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, tl.n))])
-        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
-        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
-        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
-        # with the object (no rolling at all), else about the turning axis only (rolling along it).
-        for follow in (False, True):  # into USP: turning with the object about both tangents, then one
-            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_after[catcher], follow, P)
-            if isinstance(got, str):
-                why = f"contact {c}: {got}"
-                continue
-            ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
-            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got)
-            break
-        if found is not None:
-            break
-    if found is None:
-        raise TumbleError("no_catcher", f"step {k}: no catcher works ({why})")
-    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = found
+    got = _find_catch(env, roll, k, pusher, c_p, q_push[0], candidates, usp, X_to, q_after[catcher], th_r)
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = got[:-1]
+    X_mpc, f_mpc, f_tab, errs = got.mpc
     T = len(theta)
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
-
-    # Forces: the tumbling MPC, one run per segment of the roll (at rest at every switch).
-    out = tumble_mpc(env.scene.object.mass, env.inertia, model, roll, theta, t_prof, X_ref, on_p,
-                     env.p_O[[c_p, c]], env.n_O[[c_p, c]], env.mp)
-    if isinstance(out, str):
-        why = f"step {k}: {out}"
-        if mode == "hold" and "after the release" in out:
-            off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
-            why += (f": the destination grasp's catching contact {c} (its normal {off:.0f} deg from the "
-                    f"landing face's) cannot hold the object alone")
-        raise TumbleError("mpc_infeasible", why)
-    X_mpc, f_mpc, f_tab, errs = out
 
     ip, ic = (0, 1)
     tl.move_arm(pusher, step["transit"][pusher], X_from, k, -1)
