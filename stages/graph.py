@@ -29,11 +29,11 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   turns the object against its weight (:func:`push_levers`), with IK and no collision along the roll
   up to the release angle of ``stages.trajectory`` (:func:`release_angle`, past the tip-over); the
   other arm stays away. This is a necessary condition only: ``pivot plan`` runs the tumbling MPC with
-  the catch on every tumble it walks. Into SP: free node → free node. Into USP (Fig. 14): free node → a **catch node**
-  of the new pose (its catching ball, the other arm's, waits on the landing face under the overhang
-  beyond the table's edge and then holds the object alone, :func:`catch_candidates`; the candidates
-  and their checks are in ``catches.parquet``, rejected ones with their reason, which the tumble
-  edges into them carry).
+  the catch on every tumble it walks. Into SP: free node → free node. Into USP (Fig. 14): free node →
+  a **catch node** of the new pose (its catching ball, the other arm's, waits on the landing face
+  under the overhang beyond the table's edge and then holds the object alone,
+  :func:`catch_candidates`; the candidates and their checks are in ``catches.parquet``, rejected ones
+  with their reason, which the tumble edges into them carry).
 - **hand-over** (a regrasp, weight ``w_regrasp``, directed; :func:`handover_edges`): catch node →
   each grasp of its pose: the pusher takes its contact of the grasp while the catcher holds, then
   the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f); or through a hold
@@ -75,7 +75,7 @@ class Params:
     push_angle: float = np.radians(40.0)
     release_past_tip: float = np.radians(10.0)
     push_step: float = np.radians(8.0)
-    #: Pusher candidates tried per tumble and arm (largest moment per unit force first, :func:`push_levers`).
+    #: Pusher candidates tried per tumble and arm, best first (:func:`_push_candidates`).
     push_candidates: int = 8
     #: A catcher of a tumble into USP (:func:`catch_candidates`): on the landing face (its outward normal
     #: within ``catch_cone`` of straight down after the landing), its ball at least ``catch_clearance``
