@@ -25,13 +25,15 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   :func:`usp_regrasp_edges`). Undirected. The transit motions themselves are planned lazily by
   ``pivot plan``.
 - **tumble** (weight ``w_tumble``, directed): over a support edge onto the next stable face
-  (§5.2.2). One ball pushes: a contact whose inward normal drives the rotation, with IK and no
-  collision along the first ``push_angle`` of the rotation (it then lets the object fall); the other
-  arm stays away. Into SP: free node → free node. Into USP (Fig. 14): free node → a **catch node**
-  of the new pose (its catching ball, the other arm's, waits on the landing face under the overhang
-  beyond the table's edge and then holds the object alone, :func:`catch_candidates`; the candidates
-  and their checks are in ``catches.parquet``, rejected ones with their reason, which the tumble
-  edges into them carry).
+  (§5.2.2). One ball pushes: a contact whose push, within the ball's friction cone and force bound,
+  turns the object against its weight (:func:`push_levers`), with IK and no collision along the roll
+  up to the release angle of ``stages.trajectory`` (:func:`release_angle`, past the tip-over); the
+  other arm stays away. This is a necessary condition only: ``pivot plan`` runs the tumbling MPC with
+  the catch on every tumble it walks. Into SP: free node → free node. Into USP (Fig. 14): free node →
+  a **catch node** of the new pose (its catching ball, the other arm's, waits on the landing face
+  under the overhang beyond the table's edge and then holds the object alone,
+  :func:`catch_candidates`; the candidates and their checks are in ``catches.parquet``, rejected ones
+  with their reason, which the tumble edges into them carry).
 - **hand-over** (a regrasp, weight ``w_regrasp``, directed; :func:`handover_edges`): catch node →
   each grasp of its pose: the pusher takes its contact of the grasp while the catcher holds, then
   the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f); or through a hold
@@ -46,6 +48,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,13 +69,14 @@ class Params:
     #: many intermediate configurations are checked.
     check_durations: tuple[float, float, float] = (1.0, 1.5, 1.0)
     check_dt: float = 0.4
-    #: A pusher follows the tumble for this angle, then lets the object fall (notes: 35–45°).
+    #: A pusher follows the tumble for at least this angle (notes: 35–45°) and ``release_past_tip``
+    #: past the angle where the CoM crosses over the axis (:func:`release_angle`), then lets go; its IK
+    #: and collisions are checked at most ``push_step`` apart up to there, as ``stages.trajectory`` pushes.
     push_angle: float = np.radians(40.0)
-    push_samples: int = 6
-    #: Pusher candidates tried per tumble and arm (highest lever arm first).
+    release_past_tip: float = np.radians(10.0)
+    push_step: float = np.radians(8.0)
+    #: Pusher candidates tried per tumble and arm, best first (:func:`_push_candidates`).
     push_candidates: int = 8
-    #: The pusher's inward normal must be within this angle of the contact's motion direction.
-    push_cone: float = np.radians(50.0)
     #: A catcher of a tumble into USP (:func:`catch_candidates`): on the landing face (its outward normal
     #: within ``catch_cone`` of straight down after the landing), its ball at least ``catch_clearance``
     #: beyond the table's edge; ``catch_candidates`` per tumble and arm, largest lever first.
@@ -272,7 +276,8 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
                if ps["support"][links["pose_a"][li]] == "SP"]  # out of USP its holding ball would have to push
     la, lb = links["pose_a"][tumbles], links["pose_b"][tumbles]
     tumble_edges = np.stack([links["edge_v0"][tumbles], links["edge_v1"][tumbles]], axis=1).astype(np.int64)
-    found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params)
+    found = pusher_motions(robot, collide, model, X_WO[la], X_WO[lb], tumble_edges, pc, nc, r, params,
+                           push_limits(scene, params))
     into_usp = ps["support"][lb] == "USP"
     own: dict[tuple, set] = {}  # (landing pose, arm) -> that arm's contacts in the pose's grasps
     landing = np.isin(grasps["pose_id"], lb[into_usp])
@@ -622,54 +627,141 @@ def hold_edges(catches: dict, holds: dict, grasps, q_g, X_WO, collide, weight: f
     return out
 
 
-def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, arms=("left", "right")):
+class PushLimits(NamedTuple):
+    """What a pushing ball can do, as the tumbling MPC bounds it (``stages.trajectory.make_env``): the
+    ball's friction coefficient ``mu`` (the scene's times ``friction_safety``), the bound on its normal
+    force ``f_max`` (N) and the weight it lifts ``weight`` (N)."""
+
+    mu: float
+    f_max: float
+    weight: float
+
+
+def push_limits(scene: Scene, params: Params) -> PushLimits:
+    """The :class:`PushLimits` of ``scene``'s ball and object."""
+    return PushLimits(params.friction_safety * scene.object.friction, scene.robot.max_eef_force,
+                      scene.object.mass * mpc.Params().g)
+
+
+def push_levers(p_W: np.ndarray, n_W: np.ndarray, p_axis: np.ndarray, a_axis: np.ndarray, mu: float) -> np.ndarray:
+    """The largest moment about a rotation axis per unit normal force of a ball pushing on each contact.
+
+    A ball on contact ``p`` (inward normal ``n``) pushes with ``f = f_n (n + t)``, ``t`` tangent to the
+    face with ``|t| <= mu`` (its friction cone); the moment ``((p - p_axis) x f) . a = f . m`` with
+    ``m = a x (p - p_axis)`` (the contact's velocity per unit angular rate) is largest with ``t`` along
+    ``m``'s tangential part: ``f_n (n . m + mu |m - (n . m) n|)``. A positive value is a push that
+    opens the rotation; the force bound of the MPC is on ``f_n``, so this ranks pushers by what they can
+    turn. (A ball on the side face opposite a box's tipping edge, at height z and the face's width w
+    from the axis: ``z + mu w``; its normal alone is ``atan(w / z)`` off its motion.)
+
+    Parameters
+    ----------
+    p_W, n_W : (C, 3) contact points and outward unit normals (W).
+    p_axis, a_axis : (3,) a point of the axis and its unit direction, right-handed in the rotation's sense.
+
+    Returns ``(C,)`` m.
+    """
+    m = np.cross(a_axis, p_W - p_axis)
+    n_in = -n_W
+    along = np.einsum("ij,ij->i", n_in, m)
+    return along + mu * np.linalg.norm(m - along[:, None] * n_in, axis=1)
+
+
+def release_angle(model, roll: poses.Roll, params: Params) -> float:
+    """The pusher's release angle along ``roll`` (rad): ``push_angle``, and at least ``release_past_tip``
+    past the angle where the CoM crosses over the axis (its highest point), at most the landing."""
+    grid = np.linspace(0.0, roll.total, 721)
+    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
+    return min(max(params.push_angle, th_tip + params.release_past_tip), roll.total)
+
+
+def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, limits: PushLimits,
+                  arms=("left", "right")):
     """A ball that can push the object over hull edge (e0, e1) from ``Xa`` toward ``Xb`` (§5.2.2).
 
     Returns ``(arm, contact, q (T, n))`` for the first that works, or ``(None, reason, None)``; see
     :func:`pusher_motions`, which does this for many tumbles at once.
     """
     return pusher_motions(robot, collide, model, Xa[None], Xb[None], np.array([[e0, e1]]), pc, nc, r, params,
-                          arms)[0]
+                          limits, arms)[0]
 
 
-def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Params, arms=("left", "right")):
-    """Pushers for K tumbles at once: ``Xa, Xb (K, 4, 4)``, ``edges (K, 2)`` hull vertex ids.
+class _PushRows(NamedTuple):
+    """Pusher candidates of K tumbles: ``rows (R, 4)`` (tumble, arm index, contact, rank) and the push
+    each would follow, ``X_push (K, S, 4, 4)`` (zeros where the tumble has no roll), and the reason
+    ``why (K,)`` of a tumble that has no candidate."""
 
-    Candidate contacts (``pc``, ``nc``: all contacts and outward normals, O) are those whose inward
-    normal lies within ``push_cone`` of their motion at the start of the rotation, on the arm's side
-    of the object, largest lever arm first (``push_candidates`` per arm). Every candidate of every
-    tumble is followed for ``push_angle`` of the rotation with IK from a fresh solution and checked
-    for collisions, the other arm at its rest posture (its ball may meet the object: it is the one that
-    catches), in one batch per arm.
+    rows: np.ndarray
+    X_push: np.ndarray
+    why: np.ndarray
 
-    Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left
-    before right, then by lever arm), or ``(None, reason, None)`` with the most common failure.
-    """
+
+def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushLimits, arms) -> _PushRows:
+    """The candidates of :func:`pusher_motions`: per tumble, its roll (``poses.roll_segments``, which
+    must land on ``Xb``) and the push along it to :func:`release_angle` at most ``push_step`` apart (the
+    last pose repeated to the longest push's length); per arm, the contacts on its side of the object,
+    not under it, whose best push (:func:`push_levers`, about the roll's first axis at the start)
+    overcomes the weight's moment about that axis within the force bound (the catcher's ball, on the
+    landing face, can only resist the turn), best first: largest moment less half the contact's offset
+    from the CoM along the axis (as the catchers of ``stages.trajectory``): a push off the CoM's line
+    twists the object on its edge (Exp. 3's piano pushed 9 cm off it slid 19 mm on its edge in
+    PyBullet, 4.5 mm pushed in line)."""
     K = len(Xa)
-    angles = np.linspace(0.0, params.push_angle, params.push_samples)
-    rows = []  # (tumble, arm index, contact, rank)
-    trajs = []
-    for k in range(K):  # a few dozen tumbles: geometry only, the IK and collisions are batched below
-        pa, pb = se3.transform_points(Xa[k], model.vertices[edges[k]])
-        axis = (pb - pa) / np.linalg.norm(pb - pa)
-        if np.dot(se3.quat_from_matrix(Xb[k][:3, :3] @ Xa[k][:3, :3].T)[:3], axis) < 0:
-            axis = -axis  # rotate toward Xb
+    rows, why, pushes = [], np.full(K, "no_pusher_contact", dtype=object), [None] * K
+    for k in range(K):  # a few hundred tumbles: geometry only, the IK and collisions are batched after
+        try:
+            roll = poses.roll_segments(model, Xa[k], int(edges[k, 0]), int(edges[k, 1]))
+        except InputError:
+            roll = None
+        if roll is None or np.abs(roll.X_end - Xb[k]).max() > 1e-5:  # as stages.trajectory requires
+            why[k] = "not_a_tumble"
+            continue
+        th_r = release_angle(model, roll, params)
+        pushes[k] = roll.poses(np.linspace(0.0, th_r, int(np.ceil(th_r / params.push_step - 1e-9)) + 1))
         p_W = se3.transform_points(Xa[k], pc)
         n_W = se3.rotate_vectors(Xa[k], nc)
-        motion = np.cross(axis, p_W - pa)
-        lever = np.linalg.norm(motion, axis=1)
-        cosang = np.einsum("ij,ij->i", -n_W, motion) / np.maximum(lever, 1e-12)
-        good = np.flatnonzero((cosang > np.cos(params.push_cone)) & (n_W[:, 2] > -0.5))
-        good = good[np.argsort(-lever[good], kind="stable")]
-        trajs.append(se3.transform_about_line(pa, axis, angles) @ Xa[k])
+        a = roll.a_axis[0]
+        lever = push_levers(p_W, n_W, roll.p_axis[0], a, limits.mu)
+        com = se3.transform_points(Xa[k], model.com)
+        weight_moment = limits.weight * np.cross(a, com - roll.p_axis[0])[2]  # what the push must overcome
+        good = np.flatnonzero((lever * limits.f_max > weight_moment) & (lever > 0.0) & (n_W[:, 2] > -0.5))
+        good = good[np.argsort(-(lever - 0.5 * np.abs((p_W - com) @ a))[good], kind="stable")]
         for j, arm in enumerate(("left", "right")):
             if arm not in arms:
                 continue
             side = p_W[good, 1] >= Xa[k][1, 3] if arm == "left" else p_W[good, 1] <= Xa[k][1, 3]
-            for rank, c in enumerate(good[side][: params.push_candidates]):
-                rows.append((k, j, int(c), rank))
-    rows = np.array(rows, dtype=np.int64).reshape(-1, 4)
-    trajs = np.stack(trajs) if K else np.zeros((0, len(angles), 4, 4))
+            rows += [(k, j, int(c), rank) for rank, c in enumerate(good[side][: params.push_candidates])]
+    S = max([len(x) for x in pushes if x is not None], default=1)
+    X_push = np.zeros((K, S, 4, 4))
+    for k, x in enumerate(pushes):
+        if x is not None:
+            X_push[k] = np.concatenate([x, np.repeat(x[-1:], S - len(x), axis=0)])
+    return _PushRows(np.array(rows, dtype=np.int64).reshape(-1, 4), X_push, why)
+
+
+def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Params, limits: PushLimits,
+                   arms=("left", "right")):
+    """Pushers for K tumbles at once: ``Xa, Xb (K, 4, 4)``, ``edges (K, 2)`` hull vertex ids.
+
+    A necessary condition, cheap, for the tumbling MPC that ``pivot plan`` then runs on the tumbles it
+    walks (``stages.trajectory.check_tumble``): candidate contacts (``pc``, ``nc``: all contacts and
+    outward normals, O) are those whose push within the ball's friction cone and force bound
+    (``limits``) turns the object over the edge against its weight (:func:`push_levers`: no fixed cone
+    about the contact's motion, which refused the push a person makes on a box's far side face), on
+    the arm's side of the object, best first (``push_candidates`` per arm; :func:`_push_candidates`).
+    Every candidate of every tumble is followed along the roll (``poses.roll_segments``) to
+    :func:`release_angle`, where ``stages.trajectory`` lets go, with IK from a fresh solution and
+    checked for collisions, the other arm at its rest posture (its ball may meet the object: it is the
+    one that catches), in one batch per arm.
+
+    Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left before
+    right, then best first; the last rows of ``q`` may repeat the release pose's), or ``(None, reason,
+    None)`` with the most common failure (``no_pusher_contact`` when no contact can push,
+    ``not_a_tumble`` when the edge does not roll ``Xa`` onto ``Xb``).
+    """
+    K = len(Xa)
+    cand = _push_candidates(model, Xa, Xb, edges, pc, nc, params, limits, arms)
+    rows = cand.rows
     status = np.full(len(rows), "no_pusher_contact", dtype=object)
     q_path = [None] * len(rows)
     for j, arm in enumerate(("left", "right")):
@@ -677,7 +769,7 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
         if len(sel) == 0:
             continue
         k, c = rows[sel, 0], rows[sel, 2]
-        X0 = trajs[k, 0]
+        X0 = cand.X_push[k, 0]
         seed = robot.ik(arm, se3.transform_points(X0, pc[c] + r * nc[c]), rng=np.random.default_rng(0), restarts=1,
                         tol=params.ik_tol)
         status[sel[~seed.ok]] = seed.reason[~seed.ok]
@@ -688,7 +780,7 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
         p_O = np.repeat(pc[c][:, None], 2, axis=1)
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
-        ok, why, q = check_arm_motion(robot, collide, trajs[k], p_O, n_O, q0_both, r, params, active=active,
+        ok, why, q = check_arm_motion(robot, collide, cand.X_push[k], p_O, n_O, q0_both, r, params, active=active,
                                       touching=(True, True))  # the idle ball may meet the object: it catches
         status[sel] = why
         for i in np.flatnonzero(ok):
@@ -703,7 +795,7 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
             out.append(("left" if rows[i, 1] == 0 else "right", int(rows[i, 2]), q_path[i]))
             continue
         if len(mine) == 0:
-            out.append((None, "no_pusher_contact", None))
+            out.append((None, str(cand.why[k]), None))
             continue
         vals, counts = np.unique(np.array([str(x) for x in status[mine]]), return_counts=True)
         out.append((None, str(vals[np.argmax(counts)]), None))

@@ -53,7 +53,7 @@ import numpy as np
 
 from stages import artifacts, diagnosis, mpc, se3, transit
 from stages.graph import Params as GraphParams
-from stages.graph import check_arm_motion, pusher_motion
+from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.sample import make_scene_collision_fn, placement_pose
@@ -345,7 +345,7 @@ def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_ca
     tp = trajectory.TumbleParams()
     mp = _mpc_params(ctx, params)
     roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
-    th_r = trajectory.release_angle(ctx.model, roll, GraphParams(), tp)
+    th_r = release_angle(ctx.model, roll, GraphParams())
     if roll.total < th_r + np.radians(5.0):
         return "the landing comes before the release"
     t, theta, on_p = trajectory.tumble_profile(roll, th_r, roll.total, tp, mp.dt)
@@ -537,9 +537,10 @@ class _MPCChecks:
 
 
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
-    """The pusher's contact and joint path for a tumble (see ``stages.graph._find_pusher``)."""
+    """The pusher's contact and joint path for a tumble (``stages.graph.pusher_motion``), or None."""
+    gp = GraphParams()
     found, c, q = pusher_motion(ctx.robot, ctx.collide, ctx.model, Xa, Xb, e0, e1, ctx.p_O, ctx.n_O,
-                                ctx.scene.robot.ball_radius, GraphParams(), arms=(arm,))
+                                ctx.scene.robot.ball_radius, gp, push_limits(ctx.scene, gp), arms=(arm,))
     return None if found is None else (c, q)
 
 

@@ -43,8 +43,9 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
-from stages import connect, se3
+from stages import connect, mpc, se3
 from stages.analyze import _polygon_margins
+from stages.errors import InputError
 
 PRIMITIVES = ("start", "goal", "pivot", "tumble")
 
@@ -504,6 +505,96 @@ def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 
             return None
         e = best
     return None
+
+
+@dataclass(frozen=True)
+class Roll:
+    """A roll over successive hull edges onto a stable face (:func:`roll_segments`), W frame.
+
+    X_seg : (K, 4, 4) pose at the start of each segment; p_axis, a_axis : (K, 3) a point of its axis
+    (the first edge vertex) and the unit axis, right-handed in the sense of the roll; angle : (K,) rad;
+    edge : (K, 2) the hull vertex ids of each axis; face : the stable placement it lands on; X_end.
+    """
+
+    X_seg: np.ndarray
+    p_axis: np.ndarray
+    a_axis: np.ndarray
+    angle: np.ndarray
+    edge: np.ndarray
+    face: int
+    X_end: np.ndarray
+
+    @property
+    def total(self) -> float:
+        return float(self.angle.sum())
+
+    @property
+    def switches(self) -> np.ndarray:
+        """Cumulative angles where the axis changes, ``(K - 1,)``."""
+        return np.cumsum(self.angle)[:-1]
+
+    def poses(self, theta) -> np.ndarray:
+        return mpc.roll_poses(self.X_seg, self.p_axis, self.a_axis, self.angle, theta)
+
+    def segment_of(self, theta: float) -> int:
+        return int(np.clip(np.searchsorted(np.cumsum(self.angle), theta - 1e-9), 0, len(self.angle) - 1))
+
+
+def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16) -> Roll:
+    """Roll the object from its resting face over hull edge ``(v0, v1)`` until it rests on a stable face.
+
+    The same roll as the pose sampler's (:func:`_tumble`): over the edge onto the adjacent hull face;
+    while that face is not stable (a narrow face between a foot and the body), over the edge of it
+    beyond which the CoM lies. Raises ``InputError`` when ``(v0, v1)`` is not an edge of the resting
+    face or no stable face comes within ``max_faces`` faces or half a turn.
+    """
+    down = se3.rotate_vectors(X_WO, model.normals)[:, 2]
+    g = int(np.argmin(down))  # the resting face: outward normal straight down
+    match = np.flatnonzero(((model.edges[:, 0] == v0) & (model.edges[:, 1] == v1))
+                           | ((model.edges[:, 0] == v1) & (model.edges[:, 1] == v0)))
+    if len(match) == 0 or not np.any(model.edge_faces[match[0]] == g):
+        raise InputError(f"tumble: ({v0}, {v1}) is not a hull edge of the resting face {g}")
+    e, X, total = int(match[0]), X_WO.copy(), 0.0
+    segs = []
+    for _ in range(max_faces):  # a few faces at most
+        a, b = model.edges[e]
+        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
+        g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
+        angle = float(model.edge_angle[e])
+        axis = (pb - pa) / np.linalg.norm(pb - pa)
+        n2 = se3.rotate_vectors(X, model.normals[g2])
+        for sign in (1.0, -1.0):  # the sense that turns face g2 onto the table
+            T = se3.transform_about_line(pa, sign * axis, angle)
+            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
+                break
+        else:
+            raise InputError(f"tumble over ({v0}, {v1}): face {g2} does not turn onto the table")
+        segs.append((X, pa, sign * axis, angle, (int(a), int(b))))
+        X, g, total = T @ X, g2, total + angle
+        if total > np.pi + 1e-9:
+            break
+        if model.stable[g]:
+            return Roll(X_seg=np.stack([s[0] for s in segs]), p_axis=np.stack([s[1] for s in segs]),
+                        a_axis=np.stack([s[2] for s in segs]), angle=np.array([s[3] for s in segs]),
+                        edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=X)
+        com = se3.transform_points(X, model.com)
+        centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
+        best, best_d = -1, 0.0
+        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
+            if e2 == e:
+                continue
+            q = se3.transform_points(X, model.vertices[model.edges[e2]])
+            d = q[1, :2] - q[0, :2]
+            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
+            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
+                nrm = -nrm  # outward from the face
+            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
+            if beyond > best_d:
+                best, best_d = e2, beyond
+        if best < 0:
+            break
+        e = int(best)
+    raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
 
 
 def held_com(poly: np.ndarray, com_W: np.ndarray, margin: float) -> np.ndarray:

@@ -35,8 +35,9 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
    ``stages.transit.plan_transit``; into SP from its rest posture when the plan first moves it there,
    ``{catcher}_before``, out of the object's way); both contacts switch on together (a squeeze from
    both sides);
-2. *push*: both rotate the object to the release angle (the plan's ``push_angle`` of
-   ``stages.graph``, at least ``release_past_tip`` past the angle where the CoM crosses the axis);
+2. *push*: both rotate the object to the release angle (``stages.graph.release_angle``: its
+   ``push_angle``, at least ``release_past_tip`` past the angle where the CoM crosses the axis, where
+   the graph's pusher check ends);
 3. *release*: the object pauses while the pusher's force ramps out and the catcher takes the load;
 4. *catch*: the catcher alone lowers the object;
 5. the catcher lets go, in one of three ways:
@@ -52,10 +53,11 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
      holding it alone; the plan's next step (a regrasp) hands the object over to a grasp.
 
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
-normal within ``catch_cone`` of the landing direction), largest lever arm about the axis first (less
-the offset from the CoM along the axis), the first whose joint path (IK along the whole motion,
-seeded step to step), rolling and collisions (the batched checker of ``stages.robot``, at every
-other row) pass. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
+normal within ``catch_cone`` of the landing direction) whose ball the catcher reaches at the start and
+at the release, largest lever arm about the axis first (less the offset from the CoM along the axis),
+the first whose joint path (IK along the whole motion, seeded step to step), rolling and collisions
+(the batched checker of ``stages.robot``, at every other row) pass and with which the tumbling MPC is
+feasible. Rolling: a ball whose orientation is that of position-only IK rolls on the turning
 object (``stages.execute`` shifts its target by :func:`rolling_shift`), 2-4 cm over a 90° tumble; its
 contact must stay ``roll_margin`` inside its face, else the joints are solved by :func:`ik_follow`,
 which turns the ball with the object about the turning axis (the pusher's always are). Into USP the
@@ -83,6 +85,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -92,8 +95,9 @@ from stages import artifacts, mpc, poses, se3, stability, transit
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.graph import Params as GraphParams
-from stages.graph import pusher_motion
+from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
+from stages.poses import Roll, roll_segments
 from stages.robot import load_robot
 from stages.sample import make_scene_collision_fn
 from stages.scene import load_scene
@@ -113,8 +117,6 @@ class TumbleParams:
     release_dwell: float = 1.2
     #: From the release angle to the end of the catch, the catcher alone.
     catch_time: float = 4.0
-    #: The pusher lets go at least this far past the angle where the CoM crosses over the axis.
-    release_past_tip: float = np.radians(10.0)
     #: A catcher that would end under the object stops this far short of the landing, then slides out.
     slide_short: float = np.radians(6.0)
     slide_time: float = 0.15
@@ -528,100 +530,6 @@ def hold_force(env: _Env, X: np.ndarray, contact: int) -> np.ndarray | None:
 
 
 # ----------------------------------------------------------------------------------------------------
-# Rolling over an edge
-
-
-@dataclass(frozen=True)
-class Roll:
-    """A roll over successive hull edges onto a stable face (:func:`roll_segments`), W frame.
-
-    X_seg : (K, 4, 4) pose at the start of each segment; p_axis, a_axis : (K, 3) a point of its axis
-    (the first edge vertex) and the unit axis, right-handed in the sense of the roll; angle : (K,) rad;
-    edge : (K, 2) the hull vertex ids of each axis; face : the stable placement it lands on; X_end.
-    """
-
-    X_seg: np.ndarray
-    p_axis: np.ndarray
-    a_axis: np.ndarray
-    angle: np.ndarray
-    edge: np.ndarray
-    face: int
-    X_end: np.ndarray
-
-    @property
-    def total(self) -> float:
-        return float(self.angle.sum())
-
-    @property
-    def switches(self) -> np.ndarray:
-        """Cumulative angles where the axis changes, ``(K - 1,)``."""
-        return np.cumsum(self.angle)[:-1]
-
-    def poses(self, theta) -> np.ndarray:
-        return mpc.roll_poses(self.X_seg, self.p_axis, self.a_axis, self.angle, theta)
-
-    def segment_of(self, theta: float) -> int:
-        return int(np.clip(np.searchsorted(np.cumsum(self.angle), theta - 1e-9), 0, len(self.angle) - 1))
-
-
-def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16) -> Roll:
-    """Roll the object from its resting face over hull edge ``(v0, v1)`` until it rests on a stable face.
-
-    The same roll as the pose sampler's (``stages.poses``): over the edge onto the adjacent hull face;
-    while that face is not stable (a narrow face between a foot and the body), over the edge of it
-    beyond which the CoM lies. Raises ``InputError`` when ``(v0, v1)`` is not an edge of the resting
-    face or no stable face comes within ``max_faces`` faces or half a turn.
-    """
-    down = se3.rotate_vectors(X_WO, model.normals)[:, 2]
-    g = int(np.argmin(down))  # the resting face: outward normal straight down
-    match = np.flatnonzero(((model.edges[:, 0] == v0) & (model.edges[:, 1] == v1))
-                           | ((model.edges[:, 0] == v1) & (model.edges[:, 1] == v0)))
-    if len(match) == 0 or not np.any(model.edge_faces[match[0]] == g):
-        raise InputError(f"tumble: ({v0}, {v1}) is not a hull edge of the resting face {g}")
-    e, X, total = int(match[0]), X_WO.copy(), 0.0
-    segs = []
-    for _ in range(max_faces):  # a few faces at most
-        a, b = model.edges[e]
-        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
-        g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
-        angle = float(model.edge_angle[e])
-        axis = (pb - pa) / np.linalg.norm(pb - pa)
-        n2 = se3.rotate_vectors(X, model.normals[g2])
-        for sign in (1.0, -1.0):  # the sense that turns face g2 onto the table
-            T = se3.transform_about_line(pa, sign * axis, angle)
-            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
-                break
-        else:
-            raise InputError(f"tumble over ({v0}, {v1}): face {g2} does not turn onto the table")
-        segs.append((X, pa, sign * axis, angle, (int(a), int(b))))
-        X, g, total = T @ X, g2, total + angle
-        if total > np.pi + 1e-9:
-            break
-        if model.stable[g]:
-            return Roll(X_seg=np.stack([s[0] for s in segs]), p_axis=np.stack([s[1] for s in segs]),
-                        a_axis=np.stack([s[2] for s in segs]), angle=np.array([s[3] for s in segs]),
-                        edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=X)
-        com = se3.transform_points(X, model.com)
-        centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
-        best, best_d = -1, 0.0
-        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
-            if e2 == e:
-                continue
-            q = se3.transform_points(X, model.vertices[model.edges[e2]])
-            d = q[1, :2] - q[0, :2]
-            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
-            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
-                nrm = -nrm  # outward from the face
-            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
-            if beyond > best_d:
-                best, best_d = e2, beyond
-        if best < 0:
-            break
-        e = int(best)
-    raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
-
-
-# ----------------------------------------------------------------------------------------------------
 # Rows
 
 
@@ -783,8 +691,11 @@ def _contact_at(env: _Env, arm: str, q: np.ndarray, X: np.ndarray, where: str) -
     return c
 
 
-def _catch_candidates(env: _Env, roll: Roll, params: TumbleParams) -> np.ndarray:
-    """Contact ids on the landing face, best catcher first (module docstring)."""
+def _catch_candidates(env: _Env, roll: Roll, catcher: str, th_r: float, params: TumbleParams) -> np.ndarray:
+    """Contact ids on the landing face, best catcher first (module docstring), of those whose ball the
+    ``catcher`` arm reaches (IK of the ball centre) both at the start and at the release angle ``th_r``:
+    it holds the object all the way between, whatever its mode. (Ranked first and checked after, the
+    few best were often out of reach where the object tips away from the robot, and no other was tried.)"""
     d_O = roll.X_end[2, :3] * -1.0  # the landing direction (W -z) in O: R^T (0, 0, -1)
     cand = np.flatnonzero(env.n_O @ d_O >= np.cos(params.catch_cone))
     X0 = roll.X_seg[0]
@@ -794,8 +705,13 @@ def _catch_candidates(env: _Env, roll: Roll, params: TumbleParams) -> np.ndarray
     along = rel @ a_O
     lever = np.linalg.norm(rel - along[:, None] * a_O, axis=1)
     off = np.abs((env.p_O[cand] - env.model.com) @ a_O)
-    order = np.lexsort((cand, -(lever - 0.5 * off)))
-    return cand[order][: params.catch_candidates]
+    cand = cand[np.lexsort((cand, -(lever - 0.5 * off)))]
+    ball_O = env.p_O[cand] + env.r * env.n_O[cand]
+    X = roll.poses([0.0, th_r])
+    balls = np.concatenate([se3.transform_points(X[0], ball_O), se3.transform_points(X[1], ball_O)])
+    res = env.robot.ik(catcher, balls, rng=np.random.default_rng(0))
+    reach = res.ok.reshape(2, -1).all(axis=0)
+    return cand[reach][: params.catch_candidates]
 
 
 def _collision_free(env: _Env, q_l, q_r, X, touching, every: int) -> tuple[bool, str]:
@@ -884,6 +800,107 @@ def _catcher_motion(env: _Env, roll: Roll, catcher: str, c: int, mode: str, th_c
     return q_c, X_out, tgt_out, q_out
 
 
+class _Catch(NamedTuple):
+    """A catch that works (:func:`_find_catch`): the catcher's contact, its mode (module docstring, 5.)
+    and the angle its catch ends at, the tumble's profile ``t_prof, theta, on_p`` and reference
+    ``X_ref``, the pusher's joints ``q_p`` (its first ``n_rel`` rows pushing), the catcher's IK kind,
+    joints ``q_c`` and way out ``X_out, tgt_out, q_out``, and the MPC's ``(X, f_eef, f_table, errors)``."""
+
+    c: int
+    mode: str
+    th_c: float
+    t_prof: np.ndarray
+    theta: np.ndarray
+    on_p: np.ndarray
+    n_rel: int
+    X_ref: np.ndarray
+    q_p: np.ndarray
+    ik: str
+    q_c: np.ndarray
+    X_out: np.ndarray
+    tgt_out: np.ndarray
+    q_out: np.ndarray
+    mpc: tuple
+
+
+def _catch_mode(env: _Env, roll: Roll, c: int, usp: bool, X_to: np.ndarray, P: TumbleParams) -> tuple[str, float]:
+    """How a catcher on contact ``c`` lets go (``hold``, ``place`` or ``slide``) and the roll angle at
+    which its catch ends (module docstring, 5.)."""
+    r, half = env.r, np.asarray(env.scene.table.size) / 2
+    b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
+    if usp:
+        return "hold", roll.total
+    if np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
+        return "place", roll.total
+    grid = np.linspace(0.0, roll.total, 721)  # slide out short of the landing, the ball above the table
+    z = _ball_centres(roll.poses(grid), env.p_O[c], env.n_O[c], r)[:, 2]
+    high = grid[(z >= r + P.table_clearance) & (grid <= roll.total - P.slide_short)]
+    return "slide", float(high.max()) if len(high) else 0.0
+
+
+def _find_catch(env: _Env, roll: Roll, k: int, pusher: str, c_p: int, q_p0: np.ndarray, candidates, usp: bool,
+                X_to: np.ndarray, q_end: np.ndarray, th_r: float) -> _Catch:
+    """The first of ``candidates`` (best first) whose catch works: its mode leaves a catch past the
+    release, its joints pass (:func:`_catcher_motion`, plain IK first, then turning with the object)
+    and the tumbling MPC with the pusher's contact ``c_p`` is feasible (:func:`tumble_mpc`; a catcher
+    the MPC refuses, e.g. one so high on the landing face that its squeeze keeps the push from
+    starting, gives way to the next instead of failing the tumble). The pusher follows its contact
+    from ``q_p0`` by :func:`ik_follow`. Raises :class:`TumbleError`: the pusher's IK code when it
+    fails, ``mpc_infeasible`` when the catchers whose joints pass all fail the MPC, else
+    ``no_catcher``; both name each candidate's failure."""
+    P, dt, robot = env.params.tumble, env.params.mpc.dt, env.robot
+    catcher, fails, mpc_why, pusher_paths = _other(pusher), [], None, {}
+    for c in candidates:  # a handful, best first
+        mode, th_c = _catch_mode(env, roll, c, usp, X_to, P)
+        if th_c < th_r + np.radians(5.0):
+            fails.append(f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release")
+            continue
+        t_prof, theta, on_p = tumble_profile(roll, th_r, th_c, P, dt)
+        X_ref = roll.poses(theta)
+        n_rel = int(np.count_nonzero(on_p))
+        if n_rel not in pusher_paths:  # the same for every catcher
+            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], env.r)
+            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_p0,
+                                            env.params.ik_every)
+        q_p, why_p = pusher_paths[n_rel]
+        if why_p != "ok":
+            raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
+        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, q_p.shape[1]))])
+        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
+        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
+        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
+        # with the object (no rolling at all), else about the turning axis only (rolling along it).
+        for follow in (False, True):
+            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_end, follow, P)
+            if not isinstance(got, str):
+                break
+        if isinstance(got, str):
+            fails.append(f"contact {c}: {got}")
+            continue
+        out = tumble_mpc(env.scene.object.mass, env.inertia, env.model, roll, theta, t_prof, X_ref, on_p,
+                         env.p_O[[c_p, c]], env.n_O[[c_p, c]], env.mp)
+        if isinstance(out, str):
+            mpc_why = mpc_why or _mpc_failure(env, roll, k, c, mode, out)
+            fails.append(f"contact {c}: the tumbling MPC fails")
+            continue
+        ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
+        return _Catch(c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got, out)
+    tried = "; ".join(fails) or "no candidate"
+    if mpc_why is not None:  # a catcher's joints pass: the forces are what fail
+        raise TumbleError("mpc_infeasible", f"{mpc_why} (catchers tried: {tried})")
+    raise TumbleError("no_catcher", f"step {k}: no catcher works ({tried})")
+
+
+def _mpc_failure(env: _Env, roll: Roll, k: int, c: int, mode: str, out: str) -> str:
+    """Why the tumbling MPC refuses catcher ``c`` (into USP, that its contact cannot hold the fall)."""
+    why = f"step {k}: {out}"
+    if mode == "hold" and "after the release" in out:
+        off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
+        why += (f": the destination grasp's catching contact {c} (its normal {off:.0f} deg from the "
+                f"landing face's) cannot hold the object alone")
+    return why
+
+
 def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
     """Rows of one tumble step (module docstring, "Tumble"), appended to ``tl``; returns a summary
     (catcher, contact, mode, angles, MPC figures). Raises :class:`TumbleError` when it cannot be done."""
@@ -898,7 +915,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     if np.abs(roll.X_end - X_to).max() > 1e-5:
         raise InputError(f"plan step {k}: rolling over edge ({e0}, {e1}) does not land on X_WO_to")
     found, c_found, q_push = pusher_motion(robot, env.collide, model, X_from, X_to, e0, e1, env.p_O, env.n_O, r,
-                                           gp, arms=(pusher,))
+                                           gp, push_limits(env.scene, gp), arms=(pusher,))
     if found is None or c_found != c_p:
         raise InputError(f"plan step {k}: the tumble's pusher no longer works; replan")
     usp = "catcher" in step  # into USP: the plan's catcher holds the object at the end
@@ -910,69 +927,16 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         q_after[catcher] = np.asarray(step["transit"][f"{catcher}_before"][-1], dtype=float)
         candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
     else:
-        candidates = _catch_candidates(env, roll, P)
+        candidates = _catch_candidates(env, roll, catcher, release_angle(model, roll, gp), P)
     if not len(candidates):
-        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face")
+        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face within the {catcher} arm's reach")
 
-    th_r = release_angle(model, roll, gp, P)
-    grid = np.linspace(0.0, roll.total, 721)
-    why, pusher_paths, found = "no candidate", {}, None
-    half = np.asarray(env.scene.table.size) / 2
-    for c in candidates:  # a handful, best first
-        b_end = _ball_centres(X_to[None], env.p_O[c], env.n_O[c], r)[0]
-        if usp:
-            mode, th_c = "hold", roll.total
-        elif np.any(np.abs(b_end[:2]) > half + r + P.edge_clearance):
-            mode, th_c = "place", roll.total
-        else:  # slide out short of the landing, with the ball above the table
-            z = _ball_centres(roll.poses(grid), env.p_O[c], env.n_O[c], r)[:, 2]
-            high = grid[(z >= r + P.table_clearance) & (grid <= roll.total - P.slide_short)]
-            mode, th_c = "slide", float(high.max()) if len(high) else 0.0
-        if th_c < th_r + np.radians(5.0):
-            why = f"contact {c}: the catch would end at {np.degrees(th_c):.0f} deg, before the release"
-            continue
-        t_prof, theta, on_p = tumble_profile(roll, th_r, th_c, P, dt)
-        X_ref = roll.poses(theta)
-        n_rel = int(np.count_nonzero(on_p))
-        if n_rel not in pusher_paths:  # the same for every catcher
-            tgt_p = _ball_centres(X_ref[:n_rel], env.p_O[c_p], env.n_O[c_p], r)
-            pusher_paths[n_rel] = ik_follow(robot, pusher, tgt_p, X_ref[:n_rel], env.n_O[c_p], q_push[0],
-                                            env.params.ik_every)
-        q_p, why_p = pusher_paths[n_rel]
-        if why_p != "ok":
-            raise TumbleError(why_p, f"step {k}: the pusher's IK fails on the way to the release angle")
-        q_p = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(theta) - n_rel, tl.n))])
-        # Plain IK first (the ball then rolls on its face, stages.execute's "Ball rotation"), the ball
-        # turning with the object (no rolling) when that rolls it off its face or fails. Into USP the
-        # catcher must end on its contact: solved backwards from the plan's final configuration, turning
-        # with the object (no rolling at all), else about the turning axis only (rolling along it).
-        for follow in (False, True):  # into USP: turning with the object about both tangents, then one
-            got = _catcher_motion(env, roll, catcher, c, mode, th_c, X_ref, X_to, q_p, q_after[catcher], follow, P)
-            if isinstance(got, str):
-                why = f"contact {c}: {got}"
-                continue
-            ik = ("both" if mode == "hold" else "plain") if not follow else "turn"
-            found = (c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, *got)
-            break
-        if found is not None:
-            break
-    if found is None:
-        raise TumbleError("no_catcher", f"step {k}: no catcher works ({why})")
-    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = found
+    th_r = release_angle(model, roll, gp)
+    got = _find_catch(env, roll, k, pusher, c_p, q_push[0], candidates, usp, X_to, q_after[catcher], th_r)
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = got[:-1]
+    X_mpc, f_mpc, f_tab, errs = got.mpc
     T = len(theta)
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
-
-    # Forces: the tumbling MPC, one run per segment of the roll (at rest at every switch).
-    out = tumble_mpc(env.scene.object.mass, env.inertia, model, roll, theta, t_prof, X_ref, on_p,
-                     env.p_O[[c_p, c]], env.n_O[[c_p, c]], env.mp)
-    if isinstance(out, str):
-        why = f"step {k}: {out}"
-        if mode == "hold" and "after the release" in out:
-            off = np.degrees(np.arccos(np.clip(env.n_O[c] @ -roll.X_end[2, :3], -1.0, 1.0)))
-            why += (f": the destination grasp's catching contact {c} (its normal {off:.0f} deg from the "
-                    f"landing face's) cannot hold the object alone")
-        raise TumbleError("mpc_infeasible", why)
-    X_mpc, f_mpc, f_tab, errs = out
 
     ip, ic = (0, 1)
     tl.move_arm(pusher, step["transit"][pusher], X_from, k, -1)
@@ -1034,14 +998,6 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
-
-
-def release_angle(model, roll: Roll, gp: GraphParams, P: TumbleParams) -> float:
-    """The pusher's release angle: the plan's push, and ``release_past_tip`` past the angle where the
-    CoM crosses over the axis."""
-    grid = np.linspace(0.0, roll.total, 721)
-    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
-    return max(gp.push_angle, th_tip + P.release_past_tip)
 
 
 def tumble_profile(roll: Roll, th_r: float, th_c: float, P: TumbleParams, dt: float):

@@ -589,8 +589,9 @@ def _tumble_plan(analysis, table_size, start_xy=(-0.05, 0.12)):
     con = tables["contacts"]
     p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    gp = graph.Params()
     arm, c, q_push = graph.pusher_motion(robot, collide, model, X_from, X_to, e0, e1, p_O, n_O,
-                                         scene.robot.ball_radius, graph.Params(), arms=("left",))
+                                         scene.robot.ball_radius, gp, graph.push_limits(scene, gp), arms=("left",))
     assert arm == "left", c
     home = np.zeros(robot.arm("left").dof)
     path = transit.plan_transit(robot, collide, "left", home, q_push[0], home, X_from,
@@ -793,6 +794,72 @@ def test_off_the_table_allows_the_tracking_error_at_the_edge():
     plan = np.array([[0.0, -0.3498, 0.1], [0.0, -0.32, 0.1], [0.0, -0.39, 0.1], [0.0, -0.39, 0.1]])
     err = np.linalg.norm(com - plan, axis=1)
     assert execute.off_the_table(scene, com, plan, err, 0.05, 0.01).tolist() == [False, True, False, True]
+
+
+def test_a_catcher_the_tumbling_mpc_refuses_gives_way_to_the_next(piano_analysis, monkeypatch):
+    """The mid-table tumble's catcher made to fail the tumbling MPC: the next candidate whose joints pass
+    catches instead (it used to fail the tumble, mpc_infeasible, with a kinematically fine catcher left
+    untried); with every catcher refused the tumble is mpc_infeasible, naming each one tried."""
+    from stages import trajectory
+    from stages.objectmodel import load_object_model
+
+    scene, plan, _ = _tumble_plan(piano_analysis, (0.9, 1.0))
+    _, stats = trajectory.compute(scene, piano_analysis, plan, trajectory.Params())
+    first = stats["tumbles"][0]["catch_contact"]
+    con = load_object_model(piano_analysis)[1]["contacts"]
+    p_first = np.array([con["px"][first], con["py"][first], con["pz"][first]])
+    real, refused = trajectory.tumble_mpc, []
+
+    def refuse(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp):
+        if np.allclose(p_O[1], p_first) or refused == ["all"]:
+            return "the tumbling MPC fails at row 0 of segment 0 (refused here, before the release)"
+        return real(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp)
+
+    monkeypatch.setattr(trajectory, "tumble_mpc", refuse)
+    _, stats = trajectory.compute(scene, piano_analysis, plan, trajectory.Params())
+    assert stats["status"] == "ok", stats["reason"]
+    assert stats["tumbles"][0]["catch_contact"] != first
+    refused.append("all")
+    _, stats = trajectory.compute(scene, piano_analysis, plan, trajectory.Params())
+    assert stats["status"] == "mpc_infeasible" and f"contact {first}: the tumbling MPC fails" in stats["reason"]
+
+
+def test_catch_candidates_are_those_the_catcher_reaches_at_the_start_and_the_release(tmp_path):
+    """The benchmark's box lying flat, tipped over its far edge (away from the robot): the left arm's
+    candidates are landing-face contacts whose ball it reaches at the start and at the release angle,
+    and contacts it cannot reach that rank above the last of them (lever less half the offset from the
+    CoM) are left out: ranked first and checked after, they took the candidates' places."""
+    from stages import analyze, graph, poses, trajectory
+    from stages.objectmodel import load_object_model
+    from tests.conftest import write_scene
+
+    mesh_path = tmp_path / "box.stl"
+    trimesh.creation.box((0.40, 0.30, 0.25)).export(mesh_path)
+    scene = load_scene(write_scene(tmp_path, "box", **{"object.mesh": str(mesh_path), "object.mass": 3.0}))
+    analyze.run(mesh_path, tmp_path / "analysis", 3.0, analyze.Params())
+    model, tables = load_object_model(tmp_path / "analysis")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    env = trajectory.make_env(scene, model, tables, robot, trajectory.Params())
+    g = int(np.argmax(model.normals @ np.array([0.0, 0.0, -1.0])))
+    X = se3.make_transform(se3.rot_z(np.pi / 2), np.zeros(3)) @ model.X_TO[g]  # its 0.30 side along x
+    on_face = np.flatnonzero(np.isin(model.edges, np.asarray(model.support[g])).all(axis=1))
+    mid_x = se3.transform_points(X, model.vertices[model.edges[on_face]].mean(axis=1))[:, 0]
+    roll = poses.roll_segments(model, X, *model.edges[on_face[np.argmax(mid_x)]])
+    th_r = graph.release_angle(model, roll, graph.Params())
+    P = trajectory.TumbleParams()
+    got = trajectory._catch_candidates(env, roll, "left", th_r, P)
+    assert len(got) == P.catch_candidates
+
+    landing = np.flatnonzero(env.n_O @ -roll.X_end[2, :3] >= np.cos(P.catch_cone))
+    balls = env.p_O[landing] + env.r * env.n_O[landing]
+    X0, Xr = roll.poses([0.0, th_r])
+    ok = (robot.ik("left", se3.transform_points(X0, balls), rng=np.random.default_rng(0)).ok
+          & robot.ik("left", se3.transform_points(Xr, balls), rng=np.random.default_rng(0)).ok)
+    assert set(got.tolist()) <= set(landing[ok].tolist())
+    a_O = X0[:3, :3].T @ roll.a_axis[0]
+    rel = env.p_O - se3.transform_points(se3.invert(X0), roll.p_axis[0])
+    key = np.linalg.norm(rel - np.outer(rel @ a_O, a_O), axis=1) - 0.5 * np.abs((env.p_O - model.com) @ a_O)
+    assert np.any(key[landing[~ok]] > key[got[-1]])
 
 
 def test_a_lone_hold_pushes_a_multiple_of_the_least_force(piano_analysis):

@@ -1,8 +1,11 @@
-"""Graph edges on hand-made grasp tables whose answers can be counted by hand (stages.graph)."""
+"""Graph edges on hand-made grasp tables whose answers can be counted by hand, and the pushers of tumbles
+in closed form (stages.graph)."""
 
 import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
 
-from stages import graph, plan
+from stages import graph, plan, poses, se3
 
 
 def _grasps(rows):
@@ -136,3 +139,110 @@ def test_handover_through_a_hold_moves_each_ball_while_the_other_holds_alone():
     hit = "self_collision:left_ball/right_ball"
     assert _hold_edges(catches, holds, grasps, blocked={(70, 50)})[(100, 200)][0] == hit
     assert _hold_edges(catches, holds, grasps, blocked={(70, 0)})[(200, 0)][0] == hit
+
+
+# --- Pushers of a tumble (graph.push_levers, graph.release_angle, graph.pusher_motion) ------------------
+
+def test_push_levers_are_the_moment_of_the_best_push_in_the_friction_cone(rng):
+    """A box w = 0.30 deep, H = 0.25 high, tipping over its edge along y at the origin (x in [-w, 0]): the
+    contact moves along a x (p - p_axis) = (z, 0, x_dist). On the far side face the best push, tilted up
+    by the friction, has moment z + mu w per unit normal force (its normal alone is atan(w / z) = 52 deg
+    off the motion at z = 0.23: the old 50 deg cone refused it); on the top face x from the edge,
+    -x + mu H (friction pulling toward the edge against the ball's press); on the landing face (x = 0),
+    -z: it can only resist the turn. Invariant under a rigid transform; a batch is its rows."""
+    w, H, mu = 0.30, 0.25, 0.4
+    p = np.array([[-w, 0.05, 0.23], [-w, -0.1, 0.1], [-0.05, 0.0, H], [-0.2, 0.1, H], [0.0, 0.0, 0.12]])
+    n = np.array([[-1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0], [0, 0, 1.0], [1.0, 0, 0]])
+    a, p0 = np.array([0.0, 1.0, 0.0]), np.zeros(3)
+    want = [0.23 + mu * w, 0.1 + mu * w, -0.05 + mu * H, -0.2 + mu * H, -0.12]
+    np.testing.assert_allclose(graph.push_levers(p, n, p0, a, mu), want, atol=1e-12)
+    assert np.degrees(np.arctan2(w, 0.23)) > 50.0
+    X = se3.make_transform(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+    moved = graph.push_levers(se3.transform_points(X, p), se3.rotate_vectors(X, n), se3.transform_points(X, p0),
+                              se3.rotate_vectors(X, a), mu)
+    np.testing.assert_allclose(moved, want, atol=1e-12)
+    for i in range(len(p)):
+        assert graph.push_levers(p[i:i + 1], n[i:i + 1], p0, a, mu)[0] == pytest.approx(want[i], abs=1e-12)
+    assert graph.push_levers(p[:0], n[:0], p0, a, mu).shape == (0,)
+
+
+def _lying_box(size=(0.40, 0.30, 0.25), yaw=np.pi / 2):
+    """The benchmark's box lying flat, its 0.30 side along x (yaw 90 deg), and its bottom edge farthest
+    from the robot (+x): ``(model, X, edge)``."""
+    from tests.test_poses import box_model, upright
+
+    model = box_model(size)
+    X, g = upright(model, yaw=yaw)
+    on_face = np.isin(model.edges, np.asarray(model.support[g])).all(axis=1)
+    mid_x = se3.transform_points(X, model.vertices[model.edges].mean(axis=1))[:, 0]
+    e = np.flatnonzero(on_face)[np.argmax(np.where(on_face, mid_x, -np.inf)[on_face])]
+    return model, X, tuple(int(v) for v in model.edges[e])
+
+
+def test_release_angle_is_past_the_tip_over_and_never_before_the_push_angle():
+    """``stages.trajectory`` lets the pusher go ``release_past_tip`` past the angle where the CoM crosses
+    the axis, and the graph checks the push up to there: tipping the lying box (w 0.30, H 0.25) over its
+    edge, atan(w / H) = 50.2 deg + 10 deg (to the 0.125 deg grid); the box standing on its 0.20 x 0.30 end
+    (H 0.40) over its 0.30 edge tips at atan(0.2 / 0.4) = 26.6 deg: the push still goes to ``push_angle``."""
+    gp = graph.Params()
+    model, X, (e0, e1) = _lying_box()
+    roll = poses.roll_segments(model, X, e0, e1)
+    assert graph.release_angle(model, roll, gp) == pytest.approx(np.arctan2(0.30, 0.25) + gp.release_past_tip,
+                                                                 abs=np.radians(0.13))
+    model, X, (e0, e1) = _lying_box((0.30, 0.20, 0.40))
+    assert graph.release_angle(model, poses.roll_segments(model, X, e0, e1), gp) == pytest.approx(gp.push_angle)
+
+
+def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_path):
+    """The benchmark's box (0.40 x 0.30 x 0.25 m, 3 kg) lying flat at the table's centre, its 0.30 side
+    along x, tipped over its far bottom edge: a ball pushes on the near side face (facing the robot),
+    high up, where its best push lifts the box within the force bound (the old 50 deg cone about the
+    contact's motion found no contact), and its joints follow the roll to the release angle with the
+    ball on its contact; the best in line with the CoM. With a 5 N force bound no contact's push lifts
+    the box."""
+    import trimesh
+
+    from stages import analyze
+    from stages.robot import load_robot
+    from stages.sample import make_scene_collision_fn
+    from stages.scene import load_scene
+    from tests.conftest import write_scene
+
+    mesh_path = tmp_path / "box.stl"
+    trimesh.creation.box((0.40, 0.30, 0.25)).export(mesh_path)
+    scene = load_scene(write_scene(tmp_path, "box", **{"object.mesh": str(mesh_path), "object.mass": 3.0}))
+    mesh = trimesh.load(mesh_path)
+    con = analyze.compute(mesh, 3.0, analyze.Params()).contacts
+    pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+    nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+    model, X, (e0, e1) = _lying_box()
+    roll = poses.roll_segments(model, X, e0, e1)
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    collide = make_scene_collision_fn(scene, robot, mesh)
+    gp, r = graph.Params(), scene.robot.ball_radius
+    limits = graph.push_limits(scene, gp)
+    assert limits == (0.8 * 0.5, 50.0, pytest.approx(3.0 * 9.81))
+    arm, c, q = graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits)
+    assert arm is not None, c
+    p_W, n_W = se3.transform_points(X, pc[c]), se3.rotate_vectors(X, nc[c])
+    assert n_W[0] < -0.99 and p_W[2] > 0.15  # the near side face, its upper part
+    lever = graph.push_levers(p_W[None], n_W[None], roll.p_axis[0], roll.a_axis[0], limits.mu)[0]
+    assert lever * limits.f_max > limits.weight * 0.15  # the weight's moment: 0.15 m from the axis
+    # Followed to the release angle (60.2 deg) at most push_step apart: 9 rows, the last at the release.
+    th_r = graph.release_angle(model, roll, gp)
+    assert len(q) == int(np.ceil(th_r / gp.push_step)) + 1 == 9
+    balls = robot.eef_position(arm, q)
+    want = se3.transform_points(roll.poses(np.linspace(0.0, th_r, len(q))), pc[c] + r * nc[c])
+    np.testing.assert_allclose(balls, want, atol=gp.ik_tol)
+    # Best first: the moment less half the offset from the CoM along the axis. With no collisions (the
+    # wrists meet the tilting box at the first few), the right arm's first is high and in line (2.4 cm),
+    # not the one with the largest moment (0.349 against 0.347 N m/N, 8.7 cm off the line).
+    def free(ql, qr, X_WO, touching):
+        return np.ones(len(ql), bool), np.full(len(ql), "ok")
+
+    arm, c, _ = graph.pusher_motion(robot, free, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits, ("right",))
+    p_W = se3.transform_points(X, pc[c])
+    assert arm == "right" and p_W[2] > 0.22 and abs((p_W - se3.transform_points(X, model.com)) @ roll.a_axis[0]) < 0.04
+    weak = graph.PushLimits(limits.mu, 5.0, limits.weight)
+    assert graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, weak) == \
+        (None, "no_pusher_contact", None)
