@@ -269,10 +269,16 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
                     contacts={"left": cl, "right": cr})
         return True, "ok", step, new
-    # tumble
+    return _check_tumble_step(ctx, params, state, u, v, data, step)
+
+
+def _check_tumble_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict, step: dict):
+    """:func:`_check_step` of a tumble: the pusher, the transits of both arms, and the whole tumble as
+    the motion stage will do it (``Params.check_tumble``); into USP the catch's MPC as well."""
+    nodes = ctx.nodes
     e0, e1 = int(ctx.edges["edge_v0"][data["edge_id"]]), int(ctx.edges["edge_v1"][data["edge_id"]])
     pusher = str(ctx.edges["arm"][data["edge_id"]])
-    Xa, Xb = ctx.X_WO[pu], ctx.X_WO[pv]
+    Xa, Xb = ctx.X_WO[step["pose_from"]], ctx.X_WO[step["pose_to"]]
     found = _push_plan(ctx, Xa, Xb, e0, e1, pusher)
     if found is None:
         return False, "no_pusher_contact", step, state
