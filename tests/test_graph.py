@@ -246,3 +246,17 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     weak = graph.PushLimits(limits.mu, 5.0, limits.weight)
     assert graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, weak) == \
         (None, "no_pusher_contact", None)
+
+
+def test_pivot_edges_are_the_same_whatever_the_batch_size(small_build, tmp_path):
+    """Pivot edges are checked in fixed-size batches (memory); each edge's verdict is its own."""
+    from dataclasses import replace
+
+    from stages import artifacts, graph
+
+    scene, b = small_build
+    ref = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph", replace(graph.Params(), pivot_chunk=7))
+    got = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
+    assert (ref["primitive"] == "pivot").sum() > 7  # more than one batch
+    assert (got["status"] == ref["status"]).all() and (got["node_a"] == ref["node_a"]).all()
