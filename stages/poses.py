@@ -37,7 +37,7 @@ farthest from the polygon's centre (§4.1's rotational vertices, one under each 
 
 from __future__ import annotations
 
-from collections import deque
+import heapq
 from dataclasses import dataclass
 
 import fcl
@@ -200,13 +200,15 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
 
     share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
 
-    def grow(root: int, budget: int) -> None:
-        """Expand from ``root`` until ``budget`` new kept poses (module docstring: placements take turns)."""
-        queues: dict[int, deque] = {}  # per placement, breadth first
+    def grow(root: int, budget: int, toward: np.ndarray | None = None) -> None:
+        """Expand from ``root`` until ``budget`` new kept poses (module docstring: placements take
+        turns): breadth first, or nearest first to the lattice whose keys are ``toward`` (``_nearness``)."""
+        queues: dict[int, list] = {}  # per placement, a heap of (priority, row)
         expanded: dict[int, int] = {}
 
         def push(j: int) -> None:
-            queues.setdefault(rows[j]["g"], deque()).append(j)
+            priority = float(j) if toward is None else _nearness(rows[j]["key"], toward, params)
+            heapq.heappush(queues.setdefault(rows[j]["g"], []), (priority, j))
             expanded.setdefault(rows[j]["g"], 0)
 
         if rows[root]["status"] == "ok":
@@ -217,7 +219,7 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
             if not open_:
                 break
             g = min(open_, key=lambda g: (expanded[g] / share.get(g, params.other_share), queues[g][0]))  # turns
-            i = queues[g].popleft()
+            i = heapq.heappop(queues[g])[1]
             expanded[g] += 1
             for child in _successors(model, corners, rows[i]["X"], g, half, params):
                 if n_ok >= budget:
@@ -229,12 +231,14 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
 
     first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
     grow(first, params.max_poses)  # at most max_poses poses
+    n_tree = len(rows)
     if goal is None:
         return _to_pose_set(rows, links)
     goal_id = _insert_goal(model, corners, rows, add, *goal, params)
     if goal_id >= 0 and params.goal_tree_share > 0:
         n_start = len(rows)
-        grow(goal_id, int(np.ceil(params.goal_tree_share * params.max_poses)))
+        start_keys = np.array([r["key"] for r in rows[:n_tree] if r["status"] == "ok"], dtype=float)  # start first
+        grow(goal_id, int(np.ceil(params.goal_tree_share * params.max_poses)), toward=start_keys)
         _join_trees(model, corners, rows, add, n_start, goal_id, params)
     return _to_pose_set(rows, links, goal_id)
 
@@ -317,6 +321,18 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
         if joined >= params.goal_connections:
             break
     return goal
+
+
+def _nearness(key: tuple, others: np.ndarray, params: Params) -> float:
+    """How far a pose is from a lattice it grows toward (m): the least, over that lattice's poses on
+    its placement, of the CoM distance in plan view plus ``yaw_weight`` m per rad of heading; with
+    none there, the CoM distance to ``others``' first pose (the root). ``key`` is (placement, CoM x,
+    CoM y, yaw); ``others (n, 4)`` the lattice's keys, its root first."""
+    same = others[others[:, 0] == key[0]]
+    if not len(same):
+        return float(np.hypot(key[1] - others[0, 1], key[2] - others[0, 2]))
+    dyaw = np.abs((key[3] - same[:, 3] + np.pi) % (2 * np.pi) - np.pi)
+    return float(np.min(np.hypot(key[1] - same[:, 1], key[2] - same[:, 2]) + params.yaw_weight * dyaw))
 
 
 def _join_trees(model, corners, rows, add, n_start: int, goal_id: int, params: Params) -> int:

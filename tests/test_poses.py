@@ -264,3 +264,23 @@ def test_describe_pose_names_the_obstacle_a_pose_hits_and_why_it_is_off_the_tabl
     X, g = upright(model, xy=(0.5, 0.0))
     assert poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params()) == (
         "off_table", "its support face is not on the table")
+
+
+def test_nearness_is_the_least_distance_plus_weighted_heading_on_the_same_placement():
+    p = poses.Params(yaw_weight=0.2)
+    others = np.array([[0, 0.0, 0.0, 0.0], [1, 0.5, 0.0, 0.0], [1, 0.3, 0.4, np.pi / 2]])  # root first
+    assert poses._nearness((1, 0.5, 0.1, 0.0), others, p) == pytest.approx(0.1)
+    assert poses._nearness((1, 0.3, 0.4, 0.0), others, p) == pytest.approx(min(np.hypot(0.2, 0.4), 0.2 * np.pi / 2))
+    assert poses._nearness((2, 0.3, 0.4, 1.0), others, p) == pytest.approx(0.5)  # no pose there: to the root
+
+
+def test_the_goals_lattice_grown_toward_the_start_meets_it_where_breadth_first_does_not(monkeypatch):
+    """A goal 0.55 m away turned 60°, 30 poses from the start and 60 from the goal: grown nearest first
+    toward the start's lattice, the goal's lattice meets it; grown breadth first (every pose as near), not."""
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.55, 0.0), yaw=np.radians(60))
+    prm = poses.Params(max_poses=30, goal_tree_share=2)
+    assert _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
+    monkeypatch.setattr(poses, "_nearness", lambda key, others, params: 0.0)
+    assert not _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
