@@ -32,7 +32,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull
 
-from stages.objects import DECIMALS, canonical_arrays, obj_text
+from stages.objects import DECIMALS, canonical_arrays, mesh_problems, obj_text
 
 WIDTH, DEPTH, HEIGHT = 0.425, 0.205, 0.45
 LEG_RADIUS, LEG_HEIGHT, LEG_SECTIONS, LEG_INSET = 0.018, 0.09, 24, 0.002
@@ -103,15 +103,7 @@ def build() -> tuple[np.ndarray, np.ndarray]:
     mesh = trimesh.Trimesh(np.asarray(out.vert_properties)[:, :3], np.asarray(out.tri_verts), process=False)
     vertices, faces = canonical_arrays(mesh.vertices, mesh.faces)
     check = trimesh.Trimesh(vertices, faces, process=False)
-    problems = []
-    if not check.is_watertight:
-        problems.append("not watertight")
-    if not check.is_winding_consistent:
-        problems.append("winding not consistent")
-    if check.body_count != 1:
-        problems.append(f"{check.body_count} bodies")
-    if not check.volume > 0:
-        problems.append(f"volume {check.volume}")
+    problems = mesh_problems(check)  # one watertight, outward body of a benchmark object's size
     if not np.allclose(check.extents, (WIDTH, DEPTH, HEIGHT), atol=10 ** -DECIMALS):
         problems.append(f"extents {check.extents}")
     if len(faces) > 4000:
