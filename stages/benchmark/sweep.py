@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -202,6 +203,8 @@ def run_chain(case: dict, out: Path, seeds: int, timeout: float) -> list[dict]:
     scene = out / case["scene"]
     deadline = time.monotonic() + timeout
     common = blank_row(case, 0)
+    for stale in ("analysis", "sample", "graph", "full"):  # a rerun reads only what it wrote itself
+        shutil.rmtree(b / stale, ignore_errors=True)
 
     def stage(name: str, seed: int = 0) -> StageRun:
         log_name = f"execute{seed}.log" if name == "execute" else f"{name}.log"
