@@ -112,3 +112,8 @@ def test_smoke_sweep_on_a_local_cluster(tmp_path):
     assert r.exit_code == 0, r.output
     text = (out / "report.md").read_text()
     assert "harness:crash" in text and (out / "figures" / "rates_by_object.png").stat().st_size > 1000
+
+
+def test_an_unknown_object_is_one_line_exit_2_and_writes_nothing(tmp_path):
+    r = runner.invoke(app, ["benchmark", "make", str(tmp_path / "out"), "--objects", "box,sofa"])
+    assert r.exit_code == 2 and "no object family 'sofa'" in r.output and not (tmp_path / "out").exists()

@@ -247,13 +247,13 @@ def make_suite(out: str | Path, prm: SuiteParams = SuiteParams()) -> dict:
     Raises ``InputError`` (via :func:`stages.objects.make_mesh`) for an unknown object name.
     """
     out = Path(out)
+    unknown = [n for n in prm.objects if n not in objects.FAMILIES]
+    if unknown:  # before anything is written
+        raise InputError(f"--objects: no object family {unknown[0]!r} (known: {', '.join(objects.FAMILIES)})")
     template = json.loads(Path(prm.template).read_text())
     urdf = (Path(prm.template).parent / template["robot"]["urdf"]).resolve()
     (out / "robots").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(urdf, out / "robots" / urdf.name)
-    unknown = [n for n in prm.objects if n not in objects.FAMILIES]
-    if unknown:
-        raise InputError(f"--objects: no object family {unknown[0]!r} (known: {', '.join(objects.FAMILIES)})")
     families = [objects.FAMILIES[name] for name in prm.objects]
     cases = []
     for family in families:
