@@ -476,51 +476,15 @@ def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarra
 
 
 def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 16):
-    """Roll the object from face ``g`` over hull edge ``e`` until it rests on a stable face.
-
-    A curved foot puts narrow hull faces between two stable faces; the object rolls over them in
-    turn (the rotation axis moves from the foot line to the body edge, as measured in PyBullet), each
-    time over the edge of the current face beyond which its CoM lies. Returns ``(X_WO, face, total
-    angle)`` or None when no stable face comes within ``max_faces`` faces or half a turn.
-    """
-    total = 0.0
-    for _ in range(max_faces):  # a few faces at most
-        a, b = model.edges[e]
-        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
-        g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
-        angle = float(model.edge_angle[e])
-        axis = (pb - pa) / np.linalg.norm(pb - pa)
-        n2 = se3.rotate_vectors(X, model.normals[g2])
-        for sign in (1.0, -1.0):  # the sign that turns face g2 onto the table
-            T = se3.transform_about_line(pa, axis, sign * angle)
-            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
-                break
-        else:
-            return None
-        X, g, total = T @ X, g2, total + angle
-        if total > np.pi + 1e-9:
-            return None
-        if model.stable[g]:
-            return X, g, total
-        # Still rolling: over the edge of face g that the CoM's projection lies beyond.
-        com = se3.transform_points(X, model.com)
-        best, best_d = -1, 0.0
-        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):
-            if e2 == e:
-                continue
-            q = se3.transform_points(X, model.vertices[model.edges[e2]])
-            d = q[1, :2] - q[0, :2]
-            centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
-            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
-            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
-                nrm = -nrm  # outward from the face
-            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
-            if beyond > best_d:
-                best, best_d = e2, beyond
-        if best < 0:
-            return None
-        e = best
-    return None
+    """Roll the object from face ``g`` (the face it rests on at ``X``, as :func:`roll_segments` finds
+    it) over hull edge ``e`` until it rests on a stable face: the same roll the motion stage follows.
+    Returns ``(X_WO, face, total angle)`` or None when no stable face comes within ``max_faces`` faces
+    or half a turn."""
+    try:
+        roll = roll_segments(model, X, *(int(v) for v in model.edges[e]), max_faces=max_faces)
+    except InputError:
+        return None
+    return roll.X_end, roll.face, float(roll.angle.sum())
 
 
 @dataclass(frozen=True)
