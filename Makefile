@@ -62,7 +62,7 @@ VARIANT ?=
 R := $(B)/$(if $(VARIANT),$(VARIANT),full)
 PLAN_FLAGS := $(if $(VARIANT),--$(VARIANT),)
 
-PLAN_CODE := stages/plan.py stages/diagnosis.py stages/transit.py stages/connect.py $(GRAPH_CODE)
+PLAN_CODE := stages/plan.py stages/diagnosis.py stages/transit.py stages/connect.py stages/trajectory.py $(GRAPH_CODE)
 # pivot plan exits 1 when no plan exists; plan.json still records why, so Make keeps it.
 $(R)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
 	$(PIVOT) plan $(SCENE_FILE) --build $(B) --out $@ $(PLAN_FLAGS) || [ $$? -eq 1 ]
@@ -72,7 +72,7 @@ $(R)/plan.png: $(R)/plan.json stages/plots.py | $(INSTALLED)
 
 plan: $(R)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
 
-$(R)/trajectories.parquet: $(R)/plan.json stages/trajectory.py $(PLAN_CODE) $(SHARED) | $(INSTALLED)
+$(R)/trajectories.parquet: $(R)/plan.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
 	$(PIVOT) mpc $(SCENE_FILE) --build $(B) --plan $< --out $@
 
 $(R)/trajectories.png: $(R)/trajectories.parquet stages/plots.py | $(INSTALLED)
