@@ -72,15 +72,24 @@ def failure_rows(case: dict, run: dict) -> list[str]:
     return lines
 
 
+def stage_samples(run: dict, column: str) -> dict[str, np.ndarray]:
+    """Per stage, the finite values of ``<column>_<stage>`` over the processes that ran it: the chain's
+    stages once per case (its seed-0 row), the execution once per seed."""
+    first = run["seed"] == 0
+    out = {}
+    for s in STAGES:
+        v = run[f"{column}_{s}"][first if s != "execute" else slice(None)].astype(float)
+        out[s] = v[np.isfinite(v)]
+    return out
+
+
 def time_rows(run: dict) -> list[str]:
     """Time and peak memory per stage over the processes that ran it (median, 90th percentile, max)."""
     lines = ["| stage | processes | median (s) | p90 (s) | max (s) | peak memory max (MB) |",
              "|---|---|---|---|---|---|"]
-    first = run["seed"] == 0
+    times, mems = stage_samples(run, "t"), stage_samples(run, "mem")
     for s in STAGES:
-        t = run[f"t_{s}"][first if s != "execute" else slice(None)].astype(float)
-        m = run[f"mem_{s}"][first if s != "execute" else slice(None)].astype(float)
-        t, m = t[np.isfinite(t)], m[np.isfinite(m)]
+        t, m = times[s], mems[s]
         if len(t):
             lines.append(f"| {s} | {len(t)} | {np.median(t):.1f} | {np.percentile(t, 90):.1f} | {t.max():.1f} | "
                          f"{m.max():.0f} |")
@@ -136,9 +145,8 @@ def write_report(out: str | Path) -> Path:
     total = rates(case, run, *everything)
     figs = out / "figures"
     plots.show_benchmark_rates(by_object, figs / "rates_by_object.png")
+    plots.show_benchmark_times(stage_samples(run, "t"), figs / "stage_times.png")
     first = run["seed"] == 0
-    times = {s: run[f"t_{s}"][first if s != "execute" else slice(None)].astype(float) for s in STAGES}
-    plots.show_benchmark_times({k: v[np.isfinite(v)] for k, v in times.items()}, figs / "stage_times.png")
     chain = np.nansum([run[f"t_{s}"][first].astype(float) for s in STAGES], axis=0)
     seeds = int(run["seed"].max()) + 1 if len(run["seed"]) else 0
     text = [f"# pivot benchmark: {total['cases']} cases, {seeds} seeds each",
