@@ -19,7 +19,7 @@ B := build/$(SCENE)
 # Code every stage uses: a change here reruns everything.
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute reproduce golden clean
+.PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute view browser reproduce golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -90,6 +90,13 @@ $(R)/execution.png: $(R)/execution.json | $(INSTALLED)
 
 execute: $(R)/execution.png ## run the trajectories in PyBullet physics, storyboard + GIF (Fig. 15-18)
 
+# pivot view exits 1 when there is no motion to show (no plan); the page still shows the scene and why.
+$(R)/view.html: $(R)/plan.json $(wildcard $(R)/trajectories.parquet $(R)/execution.json) stages/view.py \
+		stages/threejs.py | $(INSTALLED)
+	$(PIVOT) view $(B) --scene $(SCENE_FILE) --variant $(notdir $(R)) --out $@ || [ $$? -eq 1 ]
+
+view: $(R)/view.html ## the plan beside its execution in 3D: one HTML page to turn and scrub, offline
+
 # ------------------------------------------------------------------------------------------ jobs
 demo: $(INSTALLED) ## the whole chain on the default scene, in physics: summary, figures and a GIF
 	$(PIVOT) run $(SCENE_FILE)
@@ -127,7 +134,16 @@ benchmark: $(BENCH)/suite.json ## general objects and goals swept on Dask -> bui
 lint: $(INSTALLED) ## ruff
 	$(BIN)/ruff check pivotcli stages tests bench
 
-test: $(INSTALLED) lint ## install, lint and run the whole test suite
+# The browser test drives Debian's chromium through chromedriver: installed here when missing and apt
+# can (as root); where it cannot, the test is skipped and says why.
+browser:
+	@if ! command -v chromium > /dev/null || ! command -v chromedriver > /dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get > /dev/null; then \
+	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver; } \
+	      > /dev/null 2>&1 || echo "make: chromium could not be installed; the browser test will be skipped"; \
+	  else echo "make: no chromium and no apt-get as root; the browser test will be skipped"; fi; fi
+
+test: $(INSTALLED) lint browser ## install, lint and run the whole test suite
 	$(BIN)/python -m pytest -q
 
 bench: $(INSTALLED) ## print each stage's time beside its target and the paper's figure

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from pivotcli import analyze, benchmark, diff, execute, plan, sample, show
+from pivotcli import analyze, benchmark, diff, execute, plan, sample, show, view
 from pivotcli.common import configure
 from stages import __version__
 
@@ -49,6 +49,7 @@ app.command(name="execute")(execute.execute)
 app.command(name="run")(execute.run)
 app.command(name="report")(execute.report)
 app.command(name="diff")(diff.diff)
+app.command(name="view")(view.view)
 app.add_typer(show.app, name="show")
 app.add_typer(benchmark.app, name="benchmark")
 

@@ -96,7 +96,7 @@ def run(
     if figures:
         with console.status("drawing the figures", spinner="dots") if not state["quiet"] else contextlib.nullcontext():
             pngs = [b.resolve() / f for f in ("analysis.png", "poses.png", f"{v}/plan.png", f"{v}/trajectories.png",
-                                              f"{v}/execution.png")]
+                                              f"{v}/execution.png", f"{v}/view.html")]
             subprocess.run([*make, *map(str, pngs)], capture_output=True, text=True)
         if not state["quiet"]:
             console.print("  figures: " + ", ".join(str(p.relative_to(b.resolve())) for p in pngs if p.exists())
