@@ -28,6 +28,8 @@ def view(
     scene: Annotated[Path | None, typer.Option(help="Scene file (default data/scenes/<build name>.json).")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="HTML file (default <build>/<variant>/view.html).")]
     = None,
+    execution: Annotated[Path | None, typer.Option(help="Folder of the execution to show (default: the plan's).")]
+    = None,
 ) -> None:
     """Write a self-contained HTML page (MeshCat) that animates the plan beside its physics execution:
     turn, zoom and scrub through time in a browser, offline."""
@@ -37,7 +39,7 @@ def view(
         if not build_dir.is_dir():
             raise InputError(f"{build_dir}: no such build folder")
         res = stage.run(build_dir, scene or default_scene(build_dir), out or build_dir / variant / "view.html",
-                        variant=variant)
+                        variant=variant, execution_dir=execution)
     info(f"wrote {res.path} ({res.size / 1e6:.1f} MB, {res.keyframes} keyframes)"
          + (f"; no motion to show: {res.reason}" if res.status != "ok" else ""))
     if res.status != "ok":

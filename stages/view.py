@@ -360,7 +360,7 @@ def add_supports(page: Page, steps: list[dict], hull, t: np.ndarray, primitive: 
         page.animate(f"/meshcat/supports/active/step{k}", [Track("visible", t, primitive == k)])
 
 
-def timeline(tr, steps: list[dict], rows: np.ndarray) -> dict:
+def timeline(tr, steps: list[dict]) -> dict:
     """What the panel shows over time: ``segments`` ``[t, step, kind, phase]`` at every change of
     step or phase, ``events`` ``[t, label]`` at the regrasp and catch moments."""
     t, prim, kind, phase = tr["t"], tr["primitive"], tr["kind"], tr["phase"]
@@ -506,49 +506,33 @@ def _object_nodes(mesh: trimesh.Trimesh, params: Params) -> dict[str, Node]:
 
 
 def run(build_dir: str | Path, scene_path: str | Path, out: str | Path, variant: str = "full",
-        params: Params = Params()) -> ViewResult:
-    """Write the view of ``<build_dir>/<variant>`` to ``out`` (HTML). A build without a plan or without
+        params: Params = Params(), execution_dir: str | Path | None = None) -> ViewResult:
+    """Write the view of ``<build_dir>/<variant>`` to ``out`` (HTML), with the execution in
+    ``execution_dir`` (default beside the plan) when it holds one. A build without a plan or without
     trajectories gives the scene with the start and goal and the reason, status not ``ok``."""
-    from stages.objectmodel import load_object_model
-    from stages.robot import load_robot
     from stages.sample import placement_pose
-    from stages.scene import load_scene
 
     b, scene_path = Path(build_dir), Path(scene_path)
-    scene = load_scene(scene_path)
-    plan_path = b / variant / "plan.json"
-    plan = artifacts.read_json(plan_path, "plan")
-    _check_scene(scene_path, plan, plan_path)
-    model, tables = load_object_model(b / "analysis")
-    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    visuals, joints = read_urdf(scene.robot.urdf_path)
-    page, nodes = Page(), _object_nodes(tables["mesh"], params)
-    add_scene(page, scene, robot, visuals, joints)
-    page.set_object("/meshcat/goal", Node("Group", children=(nodes["goal"],),
-                                          X=placement_pose(scene.goal, model, f"{scene_path}: goal")[0]))
-    lines = [f"plan: {plan['status']}, " + ", ".join(f"{n} {k}s" for k, n in plan.get("counts", {}).items()
-                                                    if k != "usp_regrasp")]
-    status, reason, keyframes, info_t = "ok", "", 0, {"segments": [], "events": [], "steps": []}
+    inp = _read_inputs(b, scene_path, variant, params)
+    page = Page()
+    add_scene(page, inp.scene, inp.robot, inp.visuals, inp.joints)
+    page.set_object("/meshcat/goal", Node("Group", children=(inp.nodes["goal"],),
+                                          X=placement_pose(inp.scene.goal, inp.model, f"{scene_path}: goal")[0]))
+    lines = [f"plan: {inp.plan['status']}, " + ", ".join(
+        f"{n} {k}s" for k, n in inp.plan.get("counts", {}).items() if k != "usp_regrasp")]
     traj = b / variant / "trajectories.parquet"
-    layers = ["plan"]
-    if plan["status"] != "ok" or not traj.is_file():
-        status = "no_plan" if plan["status"] != "ok" else "no_trajectories"
-        reason = plan.get("reason", "") if status == "no_plan" else _mpc_reason(b / variant)
-        start = placement_pose(scene.start, model, f"{scene_path}: start")[0]
-        add_motion(page, "plan", _step_motion(start, robot), robot, visuals, nodes["plan"], params,
+    if inp.plan["status"] != "ok" or not traj.is_file():
+        status = "no_plan" if inp.plan["status"] != "ok" else "no_trajectories"
+        reason = inp.plan.get("reason", "") if status == "no_plan" else _mpc_reason(b / variant)
+        start = placement_pose(inp.scene.start, inp.model, f"{scene_path}: start")[0]
+        add_motion(page, "plan", _step_motion(start, inp.robot), inp.robot, inp.visuals, inp.nodes["plan"], params,
                    PLAN_PATH_RGB, PLAN_FORCE_RGB)
+        keyframes, info_t, layers = 0, {"segments": [], "events": [], "steps": []}, ["plan"]
     else:
-        tr = artifacts.read_table(traj, "trajectories")
-        rows = keyframe_rows(tr["t"], [tr["primitive"], tr["phase"], tr["left_contact"], tr["right_contact"]],
-                             params.rate)
-        keyframes = len(rows)
-        m = plan_motion(tr, rows, tables["mesh"], model.com)
-        add_motion(page, "plan", m, robot, visuals, nodes["plan"], params, PLAN_PATH_RGB, PLAN_FORCE_RGB)
-        add_supports(page, plan["steps"], tables["hull"], m.t, tr["primitive"][rows])
-        info_t = timeline(tr, plan["steps"], rows)
-        layers += _add_execution(page, b / variant, tr, rows, robot, visuals, tables["mesh"], model.com, nodes,
-                                 params, lines)
-    info = {"title": f"pivot view: {scene.name} ({variant})", "lines": lines, "timeline": info_t,
+        status, reason = "ok", ""
+        keyframes, info_t, layers = _motion_layers(page, inp, artifacts.read_table(traj, "trajectories"),
+                                                   Path(execution_dir or b / variant), params, lines)
+    info = {"title": f"pivot view: {inp.scene.name} ({variant})", "lines": lines, "timeline": info_t,
             "status": f"{status.replace('_', ' ')}: {reason}" if status != "ok" else "", "layers": layers}
     html = threejs.page_html(page, info["title"], info, PANEL_CSS, panel_html(info), PANEL_JS)
     out = Path(out)
@@ -556,6 +540,51 @@ def run(build_dir: str | Path, scene_path: str | Path, out: str | Path, variant:
     with artifacts.atomic_path(out) as tmp:
         tmp.write_text(html, encoding="utf-8")
     return ViewResult(out, status, reason, len(html.encode("utf-8")), keyframes)
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """What a view reads: the scene, the analysed object (model and tables), the robot and its URDF
+    visuals and joints, the plan, and the object's three.js meshes (plan, execution, goal)."""
+
+    scene: object
+    model: object
+    tables: dict
+    robot: object
+    visuals: list
+    joints: dict
+    plan: dict
+    nodes: dict
+
+
+def _read_inputs(b: Path, scene_path: Path, variant: str, params: Params) -> _Inputs:
+    from stages.objectmodel import load_object_model
+    from stages.robot import load_robot
+    from stages.scene import load_scene
+
+    scene = load_scene(scene_path)
+    plan_path = b / variant / "plan.json"
+    plan = artifacts.read_json(plan_path, "plan")
+    _check_scene(scene_path, plan, plan_path)
+    model, tables = load_object_model(b / "analysis")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    visuals, joints = read_urdf(scene.robot.urdf_path)
+    return _Inputs(scene, model, tables, robot, visuals, joints, plan, _object_nodes(tables["mesh"], params))
+
+
+def _motion_layers(page: Page, inp: _Inputs, tr, execution_dir: Path, params: Params,
+                   lines: list[str]) -> tuple[int, dict, list[str]]:
+    """The plan's layer from trajectories ``tr``, the supports, the execution's layer when there is one;
+    returns the keyframe count, the panel's timeline and the layers' names."""
+    rows = keyframe_rows(tr["t"], [tr["primitive"], tr["phase"], tr["left_contact"], tr["right_contact"]],
+                         params.rate)
+    mesh = inp.tables["mesh"]
+    m = plan_motion(tr, rows, mesh, inp.model.com)
+    add_motion(page, "plan", m, inp.robot, inp.visuals, inp.nodes["plan"], params, PLAN_PATH_RGB, PLAN_FORCE_RGB)
+    add_supports(page, inp.plan["steps"], inp.tables["hull"], m.t, tr["primitive"][rows])
+    layers = ["plan", *_add_execution(page, execution_dir, tr, rows, inp.robot, inp.visuals, mesh, inp.model.com,
+                                      inp.nodes, params, lines)]
+    return len(rows), timeline(tr, inp.plan["steps"]), layers
 
 
 def _mpc_reason(run_dir: Path) -> str:
@@ -586,3 +615,29 @@ def _add_execution(page: Page, run_dir: Path, tr, rows, robot, visuals, mesh, co
         lines.append(f"execution: success {x['success']}, final error {100 * x['final_position_error']:.2f} cm / "
                      f"{x['final_yaw_error_deg']:.2f} deg, fell {x['fell']}, collision {x['collision']}")
     return ["execution"]
+
+
+def write_case_views(out: str | Path, cases: list[dict]) -> dict[str, str]:
+    """The benchmark's views: ``runs/<case>/full/view.html`` of every case with a plan, with its seed-0
+    execution, written when missing or older than the plan, trajectories or execution. Returns each
+    case's view as a path relative to ``out``; a case whose view cannot be written is left out."""
+    import logging
+
+    from stages.errors import PivotError
+
+    out, links = Path(out), {}
+    for c in cases:
+        b = out / "runs" / c["case"]
+        page = b / "full" / "view.html"
+        inputs = [b / "full" / n for n in ("plan.json", "trajectories.parquet")] + [b / "full" / "seed0" /
+                                                                                   "execution.parquet"]
+        if not inputs[0].is_file():
+            continue
+        newest = max(p.stat().st_mtime for p in inputs if p.is_file())
+        try:
+            if not page.is_file() or page.stat().st_mtime < newest:
+                run(b, out / c["scene"], page, execution_dir=b / "full" / "seed0")
+            links[c["case"]] = page.relative_to(out).as_posix()
+        except PivotError as e:
+            logging.getLogger("pivot.view").warning("%s: no view: %s", c["case"], e)
+    return links

@@ -112,6 +112,10 @@ def test_smoke_sweep_on_a_local_cluster(tmp_path):
     assert r.exit_code == 0, r.output
     text = (out / "report.md").read_text()
     assert "harness:crash" in text and (out / "figures" / "rates_by_object.png").stat().st_size > 1000
+    planned = [c["case"] for c in cases if (out / "runs" / c["case"] / "full" / "plan.json").is_file()]
+    assert planned and text.count("[3D](") == len(planned)  # every case with a plan links its 3D view
+    for c in planned:
+        assert f"[3D](runs/{c}/full/view.html)" in text and (out / "runs" / c / "full" / "view.html").is_file()
 
 
 def test_an_unknown_object_is_one_line_exit_2_and_writes_nothing(tmp_path):

@@ -114,23 +114,26 @@ def whole_chain(chain: np.ndarray) -> str:
             f"{np.median(chain):.1f} s, max {chain.max():.1f} s.")
 
 
-def every_case_rows(case: dict, run: dict) -> list[str]:
-    """Every case: kind, label, plan counts and the outcome of each seed's run."""
-    lines = ["| case | kind | reachable | plan (pivots/tumbles/regrasps, backtracks) | outcome per seed |",
-             "|---|---|---|---|---|"]
+def every_case_rows(case: dict, run: dict, views: dict | None = None) -> list[str]:
+    """Every case: kind, label, plan counts, the outcome of each seed's run and its 3D view (``views``:
+    case -> page, relative to the report)."""
+    views = views or {}
+    lines = ["| case | kind | reachable | plan (pivots/tumbles/regrasps, backtracks) | outcome per seed | view |",
+             "|---|---|---|---|---|---|"]
     for i, name in enumerate(case["case"]):
         sel = run["case"] == name
         plan = (f"{case['pivots'][i]}/{case['tumbles'][i]}/{case['regrasps'][i]}, {case['backtracks'][i]}"
                 if case["plan_found"][i] else "–")
         outcome = ", ".join(f"{s}: `{r}`" for s, r in zip(run["seed"][sel], run["reason"][sel], strict=True))
+        link = f"[3D]({views[name]})" if name in views else "–"
         lines.append(f"| `{name}` | {case['kind'][i]} | {'yes' if case['reachable'][i] else 'no'} | {plan} | "
-                     f"{outcome} |")
+                     f"{outcome} | {link} |")
     return lines
 
 
 def write_report(out: str | Path) -> Path:
     """Write ``out/report.md`` and ``out/figures/*.png`` from ``out/results.parquet``; returns the path."""
-    from stages import plots
+    from stages import plots, view
 
     out = Path(out)
     res = artifacts.read_table(out / "results.parquet", "benchmark_results")
@@ -146,6 +149,7 @@ def write_report(out: str | Path) -> Path:
     figs = out / "figures"
     plots.show_benchmark_rates(by_object, figs / "rates_by_object.png")
     plots.show_benchmark_times(stage_samples(run, "t"), figs / "stage_times.png")
+    views = view.write_case_views(out, suite["cases"])  # each case's 3D view, linked from its row
     first = run["seed"] == 0
     chain = np.nansum([run[f"t_{s}"][first].astype(float) for s in STAGES], axis=0)
     seeds = int(run["seed"].max()) + 1 if len(run["seed"]) else 0
@@ -162,7 +166,7 @@ def write_report(out: str | Path) -> Path:
             "## Time per stage", "", *time_rows(run), "",
             whole_chain(chain), "",
             "![times](figures/stage_times.png)", "",
-            "## Every case (rerun one: `pivot run OUT/scenes/<case>.json`)", "", *every_case_rows(case, run), ""]
+            "## Every case (rerun one: `pivot run OUT/scenes/<case>.json`)", "", *every_case_rows(case, run, views), ""]
     path = out / "report.md"
     with artifacts.atomic_path(path) as tmp:
         tmp.write_text("\n".join(text))
