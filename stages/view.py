@@ -516,8 +516,8 @@ def run(build_dir: str | Path, scene_path: str | Path, out: str | Path, variant:
     inp = _read_inputs(b, scene_path, variant, params)
     page = Page()
     add_scene(page, inp.scene, inp.robot, inp.visuals, inp.joints)
-    page.set_object("/meshcat/goal", Node("Group", children=(inp.nodes["goal"],),
-                                          X=placement_pose(inp.scene.goal, inp.model, f"{scene_path}: goal")[0]))
+    page.set_object("/meshcat/goal", inp.nodes["goal"])  # a mesh at the top: MeshCat computes its normals
+    page.set_transform("/meshcat/goal", placement_pose(inp.scene.goal, inp.model, f"{scene_path}: goal")[0])
     lines = [f"plan: {inp.plan['status']}, " + ", ".join(
         f"{n} {k}s" for k, n in inp.plan.get("counts", {}).items() if k != "usp_regrasp")]
     traj = b / variant / "trajectories.parquet"

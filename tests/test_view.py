@@ -61,6 +61,12 @@ def test_view_is_one_offline_file_byte_identical_on_rerun(built, tmp_path):
               "/meshcat/plan/robot/left_ball", "/meshcat/execution/robot/right_ball"):
         assert p in paths, p
     assert res.size < 4e6  # 60 s of plan and execution in a few MB
+    from stages.objectmodel import load_object_model
+    from stages.sample import placement_pose
+
+    X_goal = placement_pose(load_scene(scene).goal, load_object_model(b / "analysis")[0], "goal")[0]
+    goal = next(c for c in scene_of(html)["commands"] if c["type"] == "set_transform" and c["path"] == "/meshcat/goal")
+    assert np.allclose(np.reshape(goal["matrix"], (4, 4)).T, X_goal, atol=1e-6)  # column-major in three.js
 
 
 def test_object_track_follows_the_trajectories_and_the_execution(built, tmp_path):
