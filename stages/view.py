@@ -518,8 +518,8 @@ def run(build_dir: str | Path, scene_path: str | Path, out: str | Path, variant:
     add_scene(page, inp.scene, inp.robot, inp.visuals, inp.joints)
     page.set_object("/meshcat/goal", inp.nodes["goal"])  # a mesh at the top: MeshCat computes its normals
     page.set_transform("/meshcat/goal", placement_pose(inp.scene.goal, inp.model, f"{scene_path}: goal")[0])
-    lines = [f"plan: {inp.plan['status']}, " + ", ".join(
-        f"{n} {k}s" for k, n in inp.plan.get("counts", {}).items() if k != "usp_regrasp")]
+    counts = [f"{n} {k}s" for k, n in inp.plan.get("counts", {}).items() if k != "usp_regrasp"]
+    lines = [", ".join([f"plan: {inp.plan['status']}", *counts])]
     traj = b / variant / "trajectories.parquet"
     if inp.plan["status"] != "ok" or not traj.is_file():
         status = "no_plan" if inp.plan["status"] != "ok" else "no_trajectories"
