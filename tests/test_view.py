@@ -154,14 +154,28 @@ def test_cli_view_with_another_scene_is_one_line_exit_2_and_writes_nothing(built
 ARTIFACTS = REPO / "build" / "test-artifacts"
 
 
-def chromium_driver():
-    """Debian's chromium through its chromedriver (``make test`` installs both with apt), headless with
-    software WebGL; skips, saying why, where either is missing."""
+@pytest.fixture(scope="session")  # session-scoped as the build is, so that it is asked for first
+def chromium() -> tuple[str, str]:
+    """:func:`find_chromium`: a machine without chromium skips before the builds run."""
+    return find_chromium()
+
+
+def find_chromium() -> tuple[str, str]:
+    """Paths of Debian's chromium and chromedriver; skips, saying why, where either is missing."""
     chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
     if not chromium or not driver:
         pytest.skip("browser test skipped: Debian's chromium and chromium-driver are not installed and could not "
                     "be (make test installs them with apt-get as root)")
-    webdriver = pytest.importorskip("selenium.webdriver", reason="browser test skipped: selenium is not installed")
+    pytest.importorskip("selenium.webdriver", reason="browser test skipped: selenium is not installed")
+    return chromium, driver
+
+
+def chromium_driver():
+    """Debian's chromium through its chromedriver (``make test`` installs both with apt), headless with
+    software WebGL; skips, saying why, where either is missing."""
+    chromium, driver = find_chromium()
+    from selenium import webdriver
+
     opts = webdriver.ChromeOptions()
     opts.binary_location = chromium
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
@@ -182,7 +196,7 @@ def canvas_pixels(drv) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"))
 
 
-def test_browser_loads_the_page_from_disk_draws_it_and_the_slider_moves_the_object(built, tmp_path):
+def test_browser_loads_the_page_from_disk_draws_it_and_the_slider_moves_the_object(chromium, built, tmp_path):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
