@@ -220,16 +220,29 @@ def pose_along_y(d: np.ndarray, origin: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------- page
 
 
-def viewer_script() -> str:
-    """The MeshCat viewer (``main.min.js`` of the installed ``meshcat`` package), found without
-    importing the package (which would start its server machinery)."""
+def _viewer_dir() -> Path:
+    """``meshcat/viewer`` of the installed ``meshcat`` package, found without importing the package
+    (which would start its server machinery)."""
     spec = importlib.util.find_spec("meshcat")
     if spec is None or not spec.submodule_search_locations:
         raise InputError("meshcat: the package is not installed (pip install meshcat); it holds the viewer")
-    path = Path(next(iter(spec.submodule_search_locations))) / "viewer" / "dist" / "main.min.js"
+    return Path(next(iter(spec.submodule_search_locations))) / "viewer"
+
+
+def viewer_script() -> str:
+    """The MeshCat viewer's script (``viewer/dist/main.min.js``, three.js r132 inside)."""
+    path = _viewer_dir() / "dist" / "main.min.js"
     if not path.is_file():
         raise InputError(f"{path}: MeshCat's viewer script is missing from the meshcat package")
     return path.read_text(encoding="utf-8")
+
+
+def viewer_licence() -> str:
+    """The MeshCat viewer's MIT licence, which a copy of its script carries (as an HTML comment)."""
+    path = _viewer_dir() / "LICENSE"
+    text = path.read_text(encoding="utf-8") if path.is_file() else "MIT License, Copyright (c) 2018 Robin Deits"
+    return "<!-- The script below is MeshCat's viewer (the meshcat package), under this licence:\n" + \
+        text.replace("--", "- -").strip() + "\n-->"
 
 
 def _script_json(data) -> str:
@@ -247,7 +260,7 @@ def page_html(page: Page, title: str, extra: dict, head: str, body: str, script:
         "<style>body { margin: 0; overflow: hidden; font-family: sans-serif; }",
         "#meshcat-pane { width: 100vw; height: 100vh; overflow: hidden; }", head, "</style>", "</head>", "<body>",
         '<div id="meshcat-pane"></div>', body,
-        f"<script>\n{viewer_script()}\n</script>",
+        viewer_licence(), f"<script>\n{viewer_script()}\n</script>",
         f'<script type="application/json" id="pivot-scene">{_script_json(scene)}</script>',
         f'<script type="application/json" id="pivot-data">{_script_json(extra)}</script>',
         "<script>",

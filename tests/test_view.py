@@ -239,3 +239,18 @@ def test_browser_loads_the_page_from_disk_draws_it_and_the_slider_moves_the_obje
     assert changed.mean() > 0.002  # the picture changed where the object moved
     shutil.copy(page, ARTIFACTS / "view.html")
     assert Path(ARTIFACTS / "view.html").stat().st_size > 0
+
+
+def test_timeline_names_the_step_and_phase_and_marks_regrasps_and_catches():
+    steps = [{"primitive": "regrasp", "support": "USP"}, {"primitive": "tumble", "support": "SP",
+                                                          "pusher": "left", "catcher": "right"}]
+    rows = [(0, "transit", "left")] * 3 + [(0, "hold", "hold")] * 2 + [(1, "tumble", p) for p in
+                                                                         ("push", "push", "release", "catch")]
+    tr = {"t": np.arange(len(rows)) * 0.5, "primitive": np.array([r[0] for r in rows]),
+          "kind": np.array([r[1] for r in rows]), "phase": np.array([r[2] for r in rows])}
+    out = view.timeline(tr, steps)
+    assert out["segments"] == [[0.0, 0, "transit", "left"], [1.5, 0, "hold", "hold"], [2.5, 1, "tumble", "push"],
+                               [3.5, 1, "tumble", "release"], [4.0, 1, "tumble", "catch"]]
+    assert [t for t, _ in out["events"]] == [0.0, 3.5, 4.0]
+    assert "left ball moves" in out["events"][0][1] and "USP" in out["events"][0][1]
+    assert "right ball lowers" in out["events"][2][1]
