@@ -31,7 +31,7 @@ between them (linear positions, slerp rotations). Rows are the MPC's time steps 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -276,6 +276,24 @@ def _pose_tracks(t: np.ndarray, X: np.ndarray) -> list[Track]:
     return [Track("position", t, X[:, :3, 3]), Track("quaternion", t, se3.quat_from_matrix(X[:, :3, :3]))]
 
 
+def arm_link_visuals(robot, arm: str, visuals: list[Visual], X_links: np.ndarray) -> dict[int, list[Visual]]:
+    """The visuals of an arm's frames grouped by the frame that moves them: a frame fixed to the one
+    before it (tool flange, stick, ball) rides with the last movable frame, its visuals moved into that
+    frame, so the page animates one pose per joint. ``X_links (L, 4, 4)`` the frames' poses at any
+    one configuration; returns frame index -> visuals in that frame."""
+    a = robot.arm(arm)
+    out: dict[int, list[Visual]] = {}
+    owner = 0
+    for k, link in enumerate(a.link_names):
+        if a.joint[k] >= 0 or k == 0:
+            owner = k
+        X_ok = se3.invert(X_links[owner]) @ X_links[k]
+        for v in visuals:
+            if v.link == link:
+                out.setdefault(owner, []).append(replace(v, X_LG=X_ok @ v.X_LG))
+    return out
+
+
 def add_motion(page: Page, group: str, m: Motion, robot, visuals: list[Visual], object_node: Node,
                params: Params, rgb, force_rgb) -> None:
     """The object, the arms' links and the ball-force arrows (colour ``force_rgb``, drawn through the
@@ -283,16 +301,12 @@ def add_motion(page: Page, group: str, m: Motion, robot, visuals: list[Visual], 
     page.set_object(f"/meshcat/{group}/object", object_node)
     page.animate(f"/meshcat/{group}/object", _pose_tracks(m.t, m.X_WO))
     page.set_object(f"/meshcat/{group}/com_path", threejs.polyline(m.com_W, rgb))
-    by_link: dict[str, list[Visual]] = {}
-    for v in visuals:
-        by_link.setdefault(v.link, []).append(v)
     for arm in ARMS:
         X_links = robot.fk(arm, m.q[arm])
-        for k, link in enumerate(robot.arm(arm).link_names):
-            if link in by_link:
-                path = f"/meshcat/{group}/robot/{link}"
-                page.set_object(path, Node("Group", children=tuple(visual_node(v) for v in by_link[link])))
-                page.animate(path, _pose_tracks(m.t, X_links[:, k]))
+        for k, shapes in arm_link_visuals(robot, arm, visuals, X_links[0]).items():
+            path = f"/meshcat/{group}/robot/{robot.arm(arm).link_names[k]}"
+            page.set_object(path, Node("Group", children=tuple(visual_node(v) for v in shapes)))
+            page.animate(path, _pose_tracks(m.t, X_links[:, k]))
         size = np.linalg.norm(m.f[arm], axis=1)
         d = np.where(size[:, None] > 1e-9, m.f[arm], [0.0, 0.0, 1.0])
         R = se3.rotation_between(np.array([0.0, 1.0, 0.0]), d)
@@ -429,6 +443,9 @@ PANEL_JS = """
         ' (' + st.support + '), ' + s[2] + (s[3] && s[3] !== s[2] ? ': ' + s[3] : '');
     }
     play.textContent = A.playing ? 'pause' : 'play';
+    document.querySelectorAll('.pv-layer').forEach(function (box) {  // also hidden from the scene tree
+      box.checked = viewer.scene_tree.find(['meshcat', box.dataset.layer]).object.visible;
+    });
     requestAnimationFrame(update);
   }
   var m = /t=([0-9.]+)/.exec(window.location.hash);

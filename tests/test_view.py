@@ -3,6 +3,7 @@
 import json
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ def test_view_is_one_offline_file_byte_identical_on_rerun(built, tmp_path):
     paths = {c["path"] for c in scene_of(html)["commands"]}
     for p in ("/meshcat/table", "/meshcat/goal", "/meshcat/plan/object", "/meshcat/execution/object",
               "/meshcat/plan/com_path", "/meshcat/plan/forces/left", "/meshcat/robot_trunk/base_link",
-              "/meshcat/plan/robot/left_ball", "/meshcat/execution/robot/right_ball"):
+              "/meshcat/plan/robot/left_link_7_t", "/meshcat/execution/robot/right_link_7_t"):
         assert p in paths, p
     assert res.size < 4e6  # 60 s of plan and execution in a few MB
     from stages.objectmodel import load_object_model
@@ -81,6 +82,32 @@ def test_object_track_follows_the_trajectories_and_the_execution(built, tmp_path
         want = np.stack([table["x"], table["y"], table["z"]], 1)[rows]
         assert np.abs(p.reshape(-1, 3) - want).max() <= 1e-4  # rounded to 0.1 mm in the page
     assert t[-1] == pytest.approx(tr["t"][-1], abs=1e-3) and 0.05 < np.diff(t).max() <= 1 / 12 + 0.05
+
+
+def test_the_drawn_balls_are_where_the_trajectories_put_them(built, tmp_path):
+    """The ball rides with the last wrist link (its fixed frames merged into it): pose track x its offset."""
+    from stages import se3
+
+    scene, b = built
+    s = scene_of(view.run(b, scene, tmp_path / "v.html").path.read_text())
+    tr = artifacts.read_table(b / "full" / "trajectories.parquet", "trajectories")
+    r = load_scene(scene).robot.ball_radius
+    for arm, c in (("left", "l"), ("right", "r")):
+        path = f"/meshcat/plan/robot/{arm}_link_7_t"
+        obj = next(x["object"] for x in s["commands"] if x["type"] == "set_object" and x["path"] == path)
+        geom = {g["uuid"]: g for g in obj["geometries"]}
+        ball = [ch for ch in obj["object"]["children"]
+                if geom.get(ch.get("geometry"), {}).get("radius") == pytest.approx(r)]
+        assert len(ball) == 1
+        offset = np.reshape(ball[0]["matrix"], (4, 4)).T[:3, 3]
+        t, p = track(s, path, "position")
+        _, q = track(s, path, "quaternion")
+        drawn = se3.transform_points(se3.make_transform(se3.matrix_from_quat(q.reshape(-1, 4)), p.reshape(-1, 3)),
+                                     offset)
+        rows = np.abs(tr["t"][None, :] - t[:, None]).argmin(1)
+        want = np.stack([tr[f"{c}x"], tr[f"{c}y"], tr[f"{c}z"]], 1)[rows]
+        err = np.linalg.norm(drawn - want, axis=1)
+        assert np.median(err) < 1e-3 and err.max() < 5e-3, (np.median(err), err.max())  # IK meets the ball to mm
 
 
 def test_force_arrows_end_on_the_object_and_show_only_in_contact(built, tmp_path):
@@ -226,6 +253,14 @@ def test_browser_loads_the_page_from_disk_draws_it_and_the_slider_moves_the_obje
                 "return [p.x, p.y, p.z];"))
             shots.append(canvas_pixels(drv))
             drv.save_screenshot(str(ARTIFACTS / f"view-t{times[-1]:.1f}.png"))
+        drv.find_element(By.ID, "pv-play").click()  # play runs the clock on from the slider's time ...
+        time.sleep(1.0)
+        drv.find_element(By.ID, "pv-play").click()  # ... and pause stops it
+        played = drv.execute_script("return viewer.animator.time;")
+        time.sleep(0.5)
+        assert times[1] < played == drv.execute_script("return viewer.animator.time;")
+        drv.find_element(By.CSS_SELECTOR, ".pv-layer[data-layer=execution]").click()
+        assert not drv.execute_script("return viewer.scene_tree.find(['meshcat', 'execution']).object.visible;")
         errors = [e for e in drv.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
     finally:
