@@ -256,8 +256,9 @@ def plan_motion(tr, rows: np.ndarray, mesh: trimesh.Trimesh, com_O: np.ndarray) 
 
 
 def executed_motion(log, rows: np.ndarray, robot, mesh: trimesh.Trimesh, com_O: np.ndarray) -> Motion:
-    """The physics log's motion (``execution.parquet``, one row per trajectory row) at ``rows``: the
-    measured joints and object pose, each ball's summed normal force along its radius to the contact."""
+    """The physics log's motion (``execution.parquet``, one row per trajectory row while it ran) at
+    ``rows``: the measured joints and object pose, each ball's summed normal force along its radius to
+    the contact."""
     X_all = se3.matrix_from_columns(log.columns)
     X = X_all[rows]
     q, f, c, touch = {}, {}, {}, {}
@@ -620,10 +621,11 @@ def _add_execution(page: Page, run_dir: Path, tr, rows, robot, visuals, mesh, co
         lines.append("execution: none (run pivot execute to compare with physics)")
         return []
     log = artifacts.read_table(path, "execution")
-    if len(log["t"]) != len(tr["t"]):
-        raise ArtifactError(f"{path}: {len(log['t'])} rows, but the trajectories have {len(tr['t'])} "
-                            "(an execution of other trajectories?)")
-    m = executed_motion(log, rows, robot, mesh, com_O)
+    n = len(log["t"])  # a log that stops early is drawn as far as it goes
+    if n > len(tr["t"]) or n == 0 or not np.allclose(log["t"], tr["t"][:n], atol=1e-6):
+        raise ArtifactError(f"{path}: its rows are not the trajectories' time steps (an execution of other "
+                            "trajectories?)")
+    m = executed_motion(log, np.append(rows[rows < n - 1], n - 1), robot, mesh, com_O)
     add_motion(page, "execution", m, robot, visuals, nodes["execution"], params, EXEC_RGB, EXEC_RGB)
     page.set_property("/meshcat/execution/robot", "visible", False)
     metrics = run_dir / "execution.json"

@@ -289,3 +289,24 @@ def test_timeline_names_the_step_and_phase_and_marks_regrasps_and_catches():
     assert [t for t, _ in out["events"]] == [0.0, 3.5, 4.0]
     assert "left ball moves" in out["events"][0][1] and "USP" in out["events"][0][1]
     assert "right ball lowers" in out["events"][2][1]
+
+
+def test_an_execution_log_that_stops_early_is_drawn_as_far_as_it_goes(built, tmp_path):
+    from stages import execute
+
+    scene, b = built
+    c = tmp_path / "build"
+    shutil.copytree(b, c)
+    log = artifacts.read_table(c / "full" / "execution.parquet", "execution")
+    half = len(log) // 2
+    artifacts.write_table(c / "full" / "execution.parquet", {k: v[:half] for k, v in log.columns.items()},
+                          execute.LOG_FIELDS, log.meta)
+    s = scene_of(view.run(c, scene, tmp_path / "v.html").path.read_text())
+    t, p = track(s, "/meshcat/execution/object", "position")
+    assert t[-1] == pytest.approx(log["t"][half - 1], abs=1e-3)
+    assert np.allclose(p[-3:], [log["x"][half - 1], log["y"][half - 1], log["z"][half - 1]], atol=1e-4)
+    log2 = {k: v[:half] for k, v in log.columns.items()}
+    log2["t"] = log2["t"] + 0.01  # another run's time steps: refused, one line naming the file
+    artifacts.write_table(c / "full" / "execution.parquet", log2, execute.LOG_FIELDS, log.meta)
+    with pytest.raises(view.ArtifactError, match="execution.parquet: its rows are not the trajectories"):
+        view.run(c, scene, tmp_path / "w.html")
