@@ -446,7 +446,7 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
         rel = p_O[cand] - model.vertices[e0]
         lever = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
         off = np.abs((p_O[cand] - model.com) @ axis)
-        best = cand[np.lexsort((cand, -(lever - 0.5 * off)))][: params.catch_candidates]
+        best = _spread(cand[np.lexsort((cand, -(lever - 0.5 * off)))], params.catch_candidates)
         for arm in ("left", "right"):
             rows.update(dict.fromkeys((b, arm, int(c)) for c in best))
             # ... and every such contact that is the arm's contact of a grasp of the landing pose: the
@@ -736,13 +736,22 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
             if arm not in arms:
                 continue
             side = p_W[good, 1] >= Xa[k][1, 3] if arm == "left" else p_W[good, 1] <= Xa[k][1, 3]
-            rows += [(k, j, int(c), rank) for rank, c in enumerate(good[side][: params.push_candidates])]
+            rows += [(k, j, int(c), rank) for rank, c in enumerate(_spread(good[side], params.push_candidates))]
     S = max([len(x) for x in pushes if x is not None], default=1)
     X_push = np.zeros((K, S, 4, 4))
     for k, x in enumerate(pushes):
         if x is not None:
             X_push[k] = np.concatenate([x, np.repeat(x[-1:], S - len(x), axis=0)])
     return _PushRows(np.array(rows, dtype=np.int64).reshape(-1, 4), X_push, why)
+
+
+def _spread(ranked: np.ndarray, n: int) -> np.ndarray:
+    """``n`` of the ``ranked`` candidates, best first, evenly spaced in rank: neighbouring contacts
+    of one face rank alike and fail alike (the same reach, the same collision), so the best ``n`` are
+    one bet where the spread are ``n``."""
+    if len(ranked) <= n:
+        return ranked
+    return ranked[np.unique(np.round(np.linspace(0, len(ranked) - 1, n)).astype(np.int64))]
 
 
 def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Params, limits: PushLimits,

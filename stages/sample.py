@@ -28,7 +28,7 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    each other; a colliding candidate gets new IK solutions (from other library postures near its
    target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
-   equilibrium tilted on at least one support corner with both balls (a pivot can start); in USP
+   equilibrium on at least one support corner alone with both balls (a pivot can start); in USP
    the on-table support vertices and both balls must hold it, with its CoM the SP margin further out
    (``poses.held_com``: a USP pose just inside that margin is not held by a ball that does not
    push). The margin recorded is, in SP, the pivot margin on the first support corner (in hull
@@ -36,6 +36,10 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    ``hold_right`` say whether that ball alone holds the USP with ``Params.hold_friction_safety`` of
    the table's friction and ``Params.hold_eef_friction`` of the ball's (which a regrasp in USP
    needs, §5.2.2; a verdict only, its margin is never used).
+   ``pivot_vertices`` are the support corners on the table on which the object stays in equilibrium
+   at the pivot's full tilt (``mpc.pivot_reference``) with ``pivot_friction_safety`` and
+   ``pivot_force_safety``: the graph stage's test of a pivot edge, so that a pivot no shared grasp
+   lists is refused before its arm motion is checked.
    Every pose of a placement is its resting pose turned about the vertical and shifted, and the
    stability LP is invariant under that motion, so the pivot tests are solved once per (placement,
    pair, corner) and shared by all poses of the placement.
@@ -65,8 +69,10 @@ class Params:
     table_clearance: float = 0.01
     #: A contact normal whose z component is below this points under the object.
     under_nz: float = -0.5
-    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad).
-    away_angle: float = np.radians(120.0)
+    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad):
+    #: Fig. 5's r3/r4, "too far to be reached". Only a prefilter: the IK and the arms' collision checks
+    #: decide reach; at 120 deg it refused every grasp of a box turned 45 deg in place.
+    away_angle: float = np.radians(150.0)
     #: IK tolerance (m) and restarts.
     ik_tol: float = 1e-3
     ik_restarts: int = 2
@@ -90,6 +96,10 @@ class Params:
     #: Corner clustering and tumble edge length of the pose sampler (m).
     corner_cluster: float = 0.03
     min_tumble_edge: float = 0.05
+    #: A grasp's ``pivot_vertices`` hold at the pivot's full tilt with this fraction of the friction and
+    #: of the ball force bound: ``graph.Params.friction_safety`` and ``force_safety``, the graph's test.
+    pivot_friction_safety: float = 0.8
+    pivot_force_safety: float = 0.9
     #: Worker threads for IK, collision checks and stability LPs (numpy releases the GIL in its
     #: kernels); every candidate's result is the same for any number. On the project's 2-core VM two
     #: threads made the collision checks ~8 % faster but IK and the stability LPs 15-20 % slower
@@ -234,8 +244,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     # Stability.
     live = np.flatnonzero(reason == "")
     margins = _stability(scene, model, tables, ps, pose_idx[live], pair_idx[live], X[live], p_l[live], p_r[live],
-                         n_l[live], n_r[live], params.corner_cluster, params.threads, params.hold_friction_safety,
-                         params.hold_eef_friction)
+                         n_l[live], n_r[live], params)
     refuse_live = ~margins["stable"]
     reason[live[refuse_live]] = "unstable"
     t4 = time.perf_counter()
@@ -265,8 +274,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     return grasps, rejects, timings
 
 
-def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, corner_cluster: float,
-               threads: int = 1, hold_friction_safety: float = 1.0, hold_eef_friction: float = 1.0) -> dict:
+def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, params: Params) -> dict:
     """Stability verdicts and margins of grasp candidates (see the module docstring, step 6).
 
     The pivot tests (one support corner and both balls) are shared: every pose of a placement is that
@@ -281,13 +289,17 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     L = float(np.linalg.norm(tables["summary"]["extents"]) / 2)
 
     def evaluate(*args, **kwargs):  # the candidates in slices, one per thread
-        return stability.evaluate_threaded(*args, **kwargs, threads=threads, min_rows=256)
+        return stability.evaluate_threaded(*args, **kwargs, threads=params.threads, min_rows=256)
 
     prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
                            f_max=scene.robot.max_eef_force)
-    prm_hold = stability.Params(mu_eef=hold_eef_friction * scene.object.friction,
-                                mu_table=hold_friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
-    corners = poses.pivot_corners(model, corner_cluster)
+    prm_hold = stability.Params(mu_eef=params.hold_eef_friction * scene.object.friction,
+                                mu_table=params.hold_friction_safety * scene.table.friction,
+                                f_max=scene.robot.max_eef_force)
+    prm_pivot = stability.Params(mu_eef=params.pivot_friction_safety * scene.object.friction,
+                                 mu_table=params.pivot_friction_safety * scene.table.friction,
+                                 f_max=params.pivot_force_safety * scene.robot.max_eef_force)
+    corners = poses.pivot_corners(model, params.corner_cluster)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,
            "margin": np.zeros(N)}
@@ -330,7 +342,12 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     holds = on & holds_c[cls]                                                      # (N, kmax)
     has = holds.any(axis=1)
     first = np.argmax(holds, axis=1)
-    out["pivot_vertices"] = [ids[i][holds[i]] for i in range(N)]
+    piv_c = np.zeros((C, kmax), bool)
+    r2, c2 = rows[res.stable], cols[res.stable]
+    piv_c[r2, c2] = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, scene.planner.tilt,
+                                  prm_pivot, evaluate)
+    pivots = on & piv_c[cls]
+    out["pivot_vertices"] = [ids[i][pivots[i]] for i in range(N)]
     # Margins cost twelve LPs each: measure them on one pivot corner per SP grasp, the first that holds
     # (a USP grasp records its margin of holding, below).
     sp = has & ~usp
@@ -359,6 +376,26 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
             _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
                        evaluate)
     return out
+
+
+def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate) -> np.ndarray:
+    """Whether each object stays in equilibrium tilted by ``tilt`` (rad) onto its corner ``p0 (n, 3)``
+    with both balls (``eef_p``, inward ``eef_n (n, 2, 3)``; CoM ``com (n, 3)``; W, m), ``(n,)`` bool:
+    the graph stage's test of a pivot edge at its full tilt (``graph.build_graph``), about the axis of
+    ``mpc.pivot_reference`` (horizontal through the corner, across the corner's direction to the CoM,
+    raising the CoM side; §5.2.1, Fig. 12). Yaw and the shift do not change the verdict, so one test
+    per (placement, pair, corner) is every pose's."""
+    if not len(p0):
+        return np.zeros(0, bool)
+    d = com - p0
+    d[:, 2] = 0.0
+    defined = np.linalg.norm(d, axis=1) > 1e-9  # a CoM above its corner has no tilt direction: no pivot
+    d[~defined] = [1.0, 0.0, 0.0]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    T = se3.transform_about_line(p0, np.cross(d, [0.0, 0.0, 1.0]), np.full(len(p0), tilt))
+    res = evaluate(mass, se3.transform_points(T, com), p0[:, None], None, se3.transform_points(T[:, None], eef_p),
+                   se3.rotate_vectors(T[:, None], eef_n), None, L, prm, compute_margin=False)
+    return res.stable & defined
 
 
 def _usp_holds(out, us, kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold, evaluate) -> None:

@@ -260,3 +260,11 @@ def test_pivot_edges_are_the_same_whatever_the_batch_size(small_build, tmp_path)
     got = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
     assert (ref["primitive"] == "pivot").sum() > 7  # more than one batch
     assert (got["status"] == ref["status"]).all() and (got["node_a"] == ref["node_a"]).all()
+
+
+def test_spread_takes_the_best_and_then_candidates_evenly_down_the_ranking():
+    from stages.graph import _spread
+
+    ranked = np.arange(100, 120)
+    assert _spread(ranked, 5).tolist() == [100, 105, 110, 114, 119]
+    assert _spread(ranked[:3], 5).tolist() == [100, 101, 102]  # fewer than asked: all of them

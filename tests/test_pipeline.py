@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stages import artifacts, se3, stability
+from stages import artifacts, graph, poses, sample, se3, stability
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.sample import make_scene_collision_fn, placement_pose
@@ -42,21 +42,39 @@ def test_grasps_are_reached_collision_free_and_stable(ctx):
     yl = se3.transform_points(X, p[gr["contact_left"]])[:, 1]
     yr = se3.transform_points(X, p[gr["contact_right"]])[:, 1]
     assert (yl >= yr - 1e-12).all()
-    # SP grasps can pivot on each recorded vertex: the LP agrees.
+    # SP grasps' pivot vertices are those of their pose's support corners on which the LP holds the
+    # object tilted by the planner's tilt (mpc.pivot_reference's axis) with the graph's friction and
+    # force safety: recorded ones hold, the other corners do not.
     sp = np.flatnonzero(ps["support"][gr["pose_id"]] == "SP")[:40]
-    rows = [(i, v) for i in sp for v in gr["pivot_vertices"][i]]
-    assert rows
-    i, v = np.array(rows).T
+    corners = poses.pivot_corners(model, sample.Params().corner_cluster)
+    rows = [(i, v, v in set(gr["pivot_vertices"][i].tolist())) for i in sp
+            for v in corners[ps["placement_id"][gr["pose_id"][i]]]]
+    i, v, recorded = (np.array(x) for x in zip(*rows, strict=True))
+    assert recorded.any() and not recorded.all()
     Xi = X[i]
+    p0 = se3.transform_points(Xi, model.vertices[v])
+    d = se3.transform_points(Xi, model.com) - p0
+    d[:, 2] = 0.0
+    T = se3.transform_about_line(p0, np.cross(d / np.linalg.norm(d, axis=1, keepdims=True), [0, 0, 1.0]),
+                                 np.full(len(i), scene.planner.tilt))
+    Xt = T @ Xi
     cl, cr = gr["contact_left"][i], gr["contact_right"][i]
-    pts = np.stack([se3.transform_points(Xi, p[cl]), se3.transform_points(Xi, p[cr])], 1)
-    nrm = -np.stack([se3.rotate_vectors(Xi, n[cl]), se3.rotate_vectors(Xi, n[cr])], 1)
-    res = stability.evaluate(scene.object.mass, se3.transform_points(Xi, model.com),
-                             se3.transform_points(Xi, model.vertices[v])[:, None], None, pts, nrm, None,
-                             float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                             stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
-                                              f_max=scene.robot.max_eef_force), compute_margin=False)
-    assert res.stable.all()
+    pts = np.stack([se3.transform_points(Xt, p[cl]), se3.transform_points(Xt, p[cr])], 1)
+    nrm = -np.stack([se3.rotate_vectors(Xt, n[cl]), se3.rotate_vectors(Xt, n[cr])], 1)
+    gp = graph.Params()
+    res = stability.evaluate(scene.object.mass, se3.transform_points(Xt, model.com), p0[:, None], None, pts, nrm,
+                             None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
+                             stability.Params(mu_eef=gp.friction_safety * scene.object.friction,
+                                              mu_table=gp.friction_safety * scene.table.friction,
+                                              f_max=gp.force_safety * scene.robot.max_eef_force),
+                             compute_margin=False)
+    on = np.all(np.abs(p0[:, :2]) <= np.asarray(scene.table.size) / 2, axis=1)
+    np.testing.assert_array_equal(recorded, res.stable & on)
+
+
+def test_sample_predicts_the_graphs_pivot_test_with_the_same_safety_factors():
+    s, g = sample.Params(), graph.Params()
+    assert (s.pivot_friction_safety, s.pivot_force_safety) == (g.friction_safety, g.force_safety)
 
 
 def test_rejects_carry_known_reason_codes(ctx):
@@ -162,3 +180,4 @@ def test_mpc_stage_is_continuous_within_limits_and_deterministic(ctx, tmp_path):
     p_fk = robot.eef_position("left", np.stack(list(tr["q_left"]))[rows])
     p_col = np.stack([tr["lx"], tr["ly"], tr["lz"]], 1)[rows]
     assert np.linalg.norm(p_fk - p_col, axis=1).max() <= 2e-3
+

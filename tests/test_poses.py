@@ -284,3 +284,41 @@ def test_the_goals_lattice_grown_toward_the_start_meets_it_where_breadth_first_d
     assert _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
     monkeypatch.setattr(poses, "_nearness", lambda key, others, params: 0.0)
     assert not _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
+
+
+
+def test_a_roll_is_carried_over_a_narrow_bevel_onto_the_side_face():
+    """A box whose bottom edge is bevelled 45° by 3 cm: rolled over that edge, it lands on the bevel with
+    its CoM still behind the edge it rolled over (let go, it would fall back); the pusher carries it on
+    over the bevel's far edge onto the side face, 90° in all, resting flat."""
+    sx, sy, sz, c = 0.2, 0.3, 0.25, 0.03
+    pts = np.array([[x, y, z] for x in (-sx / 2, sx / 2) for y in (-sy / 2, sy / 2) for z in (0.0, sz)])
+    keep = ~((pts[:, 0] > 0) & (pts[:, 2] == 0.0))  # the bottom edge at +x is replaced by the bevel
+    bevel = np.array([[sx / 2 - c, y, 0.0] for y in (-sy / 2, sy / 2)] + [[sx / 2, y, c] for y in (-sy / 2, sy / 2)])
+    model = box_model(mesh=trimesh.convex.convex_hull(np.vstack([pts[keep], bevel])))
+    X0, g = upright(model)
+    low = se3.transform_points(X0, model.vertices)  # the bevel's lower edge: on the table, at x = sx/2 - c
+    e = next(int(k) for k, (a, b) in enumerate(model.edges) if np.any(model.edge_faces[k] == g)
+             and np.allclose(low[[a, b]][:, 2], 0.0, atol=1e-9)
+             and np.allclose(low[[a, b]][:, 0] - low[:, 0].min(), sx - c, atol=1e-9))
+    roll = poses.roll_segments(model, X0, *(int(v) for v in model.edges[e]))
+    assert len(roll.angle) == 2 and roll.angle.sum() == pytest.approx(np.pi / 2)
+    n_down = se3.rotate_vectors(roll.X_end, model.normals[roll.face])
+    np.testing.assert_allclose(n_down, [0.0, 0.0, -1.0], atol=1e-12)  # flat on the side face
+    assert model.stable[roll.face]
+
+
+def test_a_roll_over_a_hull_of_merged_faces_lands_exactly_flat():
+    """On a hull whose faces merge near-coplanar triangles (a corner lifted 0.3 mm), the edge is not
+    quite perpendicular to the next face's mean normal: the roll still lays that face exactly flat."""
+    from conftest import uneven_box
+
+    model = box_model(mesh=uneven_box())
+    X0, g = upright(model)
+    edges = [k for k in np.flatnonzero((model.edge_faces == g).any(axis=1)) if np.all(model.edges[k] >= 0)]
+    assert edges
+    for k in edges:
+        roll = poses.roll_segments(model, X0, *(int(v) for v in model.edges[k]))
+        n_down = se3.rotate_vectors(roll.X_end, model.normals[roll.face])
+        np.testing.assert_allclose(n_down, [0.0, 0.0, -1.0], atol=1e-12)
+        assert np.all(roll.angle > np.radians(80))
