@@ -1,0 +1,84 @@
+"""Scale (issue 20): fine meshes and large lattices give the answers the direct computations give."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import ConvexHull
+
+from stages import objects, poses, se3
+from tests.test_poses import box_model, upright
+
+HALF = np.array([0.45, 0.3])
+
+
+def clip_one(poly: np.ndarray, axis: int, sign: float, limit: float) -> np.ndarray:
+    """Sutherland–Hodgman against one half-plane, one polygon (the reference for ``_clip_all``)."""
+    d = sign * poly[:, axis] - limit
+    out = []
+    for i in range(len(poly)):
+        a, b, da, db = poly[i], poly[(i + 1) % len(poly)], d[i], d[(i + 1) % len(poly)]
+        if da <= 0:
+            out.append(a)
+        if (da < 0 < db) or (db < 0 < da):
+            out.append(a + (b - a) * (da / (da - db)))
+    return np.array(out).reshape(-1, 2)
+
+
+def test_clip_all_equals_clipping_one_triangle_at_a_time(rng):
+    T = rng.uniform(-0.7, 0.7, (500, 3, 2))
+    P, n = T, np.full(len(T), 3)
+    for axis in (0, 1):
+        for sign in (1.0, -1.0):
+            P, n = poses._clip_all(P, n, axis, sign, HALF[axis])
+    for i, tri in enumerate(T):
+        poly = tri
+        for axis in (0, 1):
+            for sign in (1.0, -1.0):
+                poly = clip_one(poly, axis, sign, HALF[axis])
+        assert np.array_equal(P[i, : n[i]], poly)  # same arithmetic, so bit for bit
+    assert len(poses._clip_all(T[:0], n[:0], 0, 1.0, 0.45)[1]) == 0
+
+
+def contact_by_scan(model, X, g):
+    """The table contact the direct way: every support triangle of the mesh, clipped, hulled (Qhull)."""
+    z = model.mesh_vertices @ model.X_TO[g][2, :3] + model.X_TO[g][2, 3]
+    tri = model.mesh_faces[np.all(np.abs(z[model.mesh_faces]) < poses.SUPPORT_TOL, axis=1)]
+    V = se3.transform_points(X, model.mesh_vertices[tri])[..., :2]
+    pieces = [se3.transform_points(X, model.vertices[np.asarray(model.support[g])])[:, :2]]
+    pieces[0] = pieces[0][np.all(np.abs(pieces[0]) <= HALF, axis=1)]
+    for poly in V:
+        for axis in (0, 1):
+            for sign in (1.0, -1.0):
+                poly = clip_one(poly, axis, sign, HALF[axis]) if len(poly) else poly
+        pieces.append(poly)
+    return np.concatenate(pieces)
+
+
+@pytest.mark.parametrize("xy", [(0.0, 0.0), (0.35, 0.1), (0.44, -0.25), (0.6, 0.0)])
+def test_table_support_of_a_fine_mesh_is_the_hull_of_all_its_clipped_support_triangles(xy):
+    fine = objects.refine(trimesh.creation.box((0.2, 0.3, 0.4)), 12 * 16 + 40)  # subdivided, 20 centroid splits
+    model = box_model(mesh=fine)
+    X, g = upright(model, xy, yaw=0.3)
+    got = poses.table_support(model, X, g, HALF)
+    pts = contact_by_scan(model, X, g)
+    if len(pts) < 3:
+        assert len(got) < 3
+        return
+    want = ConvexHull(pts)
+    assert len(model.supports[g].rim) < len(model.supports[g].vertices)  # the rim is a real reduction
+    # table_support rounds to 1e-9 m before its hull: areas agree to ~1e-8, corners to 1e-9 m
+    assert ConvexHull(got).volume == pytest.approx(want.volume, rel=1e-7)  # 2-D: the area
+    gap = np.linalg.norm(got[:, None] - pts[want.vertices][None], axis=2)
+    assert gap.min(axis=0).max() < 1e-8  # every corner is there ...
+    assert np.abs((got @ want.equations[:, :2].T + want.equations[:, 2]).max(axis=1)).max() < 1e-8  # ... on the rim
+
+
+def test_refine_reaches_the_exact_face_count_and_keeps_the_solid():
+    piano = objects.make_mesh("toy_piano")
+    fine = objects.refine(piano, 50_000)
+    assert len(fine.faces) == 50_000
+    assert fine.is_watertight and fine.is_winding_consistent and fine.body_count == 1
+    assert fine.volume == pytest.approx(piano.volume, rel=1e-6)  # centroids rounded to 1 um
+    assert np.allclose(fine.bounds, piano.bounds)
+    with pytest.raises(Exception, match="cannot be reached"):
+        objects.refine(piano, 50_001)
