@@ -285,14 +285,15 @@ def refine(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
         raise InputError(f"refine: {faces} triangles cannot be reached from {len(f)} by splitting")
     while 4 * len(f) <= faces:
         v, f = trimesh.remesh.subdivide(v, f)
-    k = (faces - len(f)) // 2
-    area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    split = np.lexsort((np.arange(len(f)), -np.round(area, 15)))[:k]
-    c = len(v) + np.arange(k)
-    a, b, d = f[split, 0], f[split, 1], f[split, 2]
-    v = np.concatenate([v, v[f[split]].mean(axis=1)])
-    new = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1), np.stack([d, a, c], 1)])
-    f = np.concatenate([np.delete(f, split, axis=0), new])
+    while len(f) < faces:  # at most twice: each round can split every triangle
+        k = min((faces - len(f)) // 2, len(f))
+        area = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        split = np.lexsort((np.arange(len(f)), -np.round(area, 15)))[:k]
+        c = len(v) + np.arange(k)
+        a, b, d = f[split, 0], f[split, 1], f[split, 2]
+        v = np.concatenate([v, v[f[split]].mean(axis=1)])
+        new = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1), np.stack([d, a, c], 1)])
+        f = np.concatenate([np.delete(f, split, axis=0), new])
     return canonical_mesh(trimesh.Trimesh(v, f, process=False))
 
 

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 from scipy.spatial import ConvexHull
 
-from stages import objects, poses, se3
+from stages import objects, poses, se3, simplify
 from tests.test_poses import box_model, upright
 
 HALF = np.array([0.45, 0.3])
@@ -82,3 +82,45 @@ def test_refine_reaches_the_exact_face_count_and_keeps_the_solid():
     assert np.allclose(fine.bounds, piano.bounds)
     with pytest.raises(Exception, match="cannot be reached"):
         objects.refine(piano, 50_001)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Physics collision shape of a fine mesh (stages.execute)
+
+
+def test_unsupported_faces_measures_only_hull_vertices_with_the_dense_answer():
+    from stages import execute
+
+    m = objects.refine(objects.make_mesh("l_block"), 4000)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    a = V[F[:, 0]]
+    n = np.cross(V[F[:, 1]] - a, V[F[:, 2]] - a)
+    ln = np.linalg.norm(n, axis=1)
+    n, a, Fk = n / ln[:, None], a, F
+    dense = Fk[((V @ n.T) - np.einsum("ij,ij->i", a, n)).max(axis=0) > 1e-6]  # the vertices x faces matrix
+    got = execute._unsupported_faces(V, F, 1e-6)
+    assert len(dense) > 0 and np.array_equal(got, dense)
+
+
+def test_collision_mesh_simplifies_a_fine_mesh_within_its_recorded_bound():
+    coarse = objects.make_mesh("l_block")
+    fine = objects.refine(coarse, 6000)
+    shape = simplify.collision_mesh(fine, max_faces=1000)
+    assert len(shape.mesh.faces) <= 1000 and shape.mesh.is_watertight
+    assert 0 < shape.tolerance <= 1e-4
+    # Both ways within the bound: the simplified vertices on the fine surface, the fine ones on the simplified.
+    assert np.abs(trimesh.proximity.signed_distance(fine, shape.mesh.vertices)).max() <= shape.tolerance
+    assert np.abs(trimesh.proximity.signed_distance(shape.mesh, fine.vertices[::7])).max() <= shape.tolerance
+    assert simplify.collision_mesh(coarse, max_faces=1000) == (coarse, 0.0)  # small meshes stay as they are
+
+
+def test_a_200k_face_piano_decomposes_into_the_pieces_of_the_piano(tmp_path):
+    from stages import execute
+
+    piano = objects.make_mesh("toy_piano")
+    shape = simplify.collision_mesh(objects.refine(piano, 200_000))
+    parts, _, _ = execute.convex_parts(shape.mesh, tmp_path)
+    want, _, _ = execute.convex_parts(piano, tmp_path)
+    assert len(parts) == len(want)
+    total = sum(trimesh.convex.convex_hull(V).volume for V in parts)
+    assert total == pytest.approx(piano.volume, rel=1e-6)  # exact pieces, no V-HACD inflation
