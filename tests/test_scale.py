@@ -124,3 +124,56 @@ def test_a_200k_face_piano_decomposes_into_the_pieces_of_the_piano(tmp_path):
     assert len(parts) == len(want)
     total = sum(trimesh.convex.convex_hull(V).volume for V in parts)
     assert total == pytest.approx(piano.volume, rel=1e-6)  # exact pieces, no V-HACD inflation
+
+
+# ----------------------------------------------------------------------------------------------------
+# Robot set-up kept on disk (stages.robot, stages.cache)
+
+
+def _setup(urdf):
+    from stages import robot as rb
+
+    rb._shared_cache.cache_clear()  # a new process, as far as the robot is concerned
+    r = rb.load_robot(urdf)
+    return rb._self_pairs(r), r._library("left")[:2]
+
+
+def test_robot_setup_is_read_back_from_disk_identical_and_keyed_by_the_urdf(tmp_path, monkeypatch):
+    import shutil
+
+    from tests.conftest import REPO
+
+    urdf = tmp_path / "robot.urdf"
+    shutil.copy(REPO / "data" / "robots" / "sda5f.urdf", urdf)
+    monkeypatch.setenv("PIVOT_CACHE_DIR", str(tmp_path / "cache"))
+    pairs, lib = _setup(urdf)
+    entries = sorted((tmp_path / "cache").glob("robot-*.npz"))
+    assert len(entries) == 2  # the pair table and the left arm's seed library
+    mtimes = [e.stat().st_mtime_ns for e in entries]
+    pairs2, lib2 = _setup(urdf)
+    assert [e.stat().st_mtime_ns for e in entries] == mtimes  # read, not written again
+    from stages.robot import _flatten
+
+    one, two = _flatten((*pairs, *lib)), _flatten((*pairs2, *lib2))
+    assert one.keys() == two.keys() and len(one) == 9  # 3 tables x 2 arms, the left-right pairs, q, cost
+    for k in one:
+        assert one[k].dtype == two[k].dtype and np.array_equal(one[k], two[k])
+    urdf.write_text(urdf.read_text() + "\n<!-- edited -->\n")  # another URDF: new entries, never stale ones
+    _setup(urdf)
+    assert len(list((tmp_path / "cache").glob("robot-*.npz"))) == 4
+    monkeypatch.setenv("PIVOT_CACHE_DIR", "")  # off: derived in the process, nothing written
+    pairs3, _ = _setup(urdf)
+    assert len(list((tmp_path / "cache").glob("robot-*.npz"))) == 4
+    three = _flatten(pairs3)
+    assert all(np.array_equal(one[k], three[k]) for k in three)
+
+
+def test_cache_dir_follows_xdg_cache_home(tmp_path, monkeypatch):
+    from stages import cache
+
+    monkeypatch.delenv("PIVOT_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert cache.cache_dir() == tmp_path / "pivot"
+    (tmp_path / "pivot").mkdir()
+    (tmp_path / "pivot" / "robot-x.npz").write_bytes(b"not a zip")
+    assert cache.load("robot-x.npz") is None  # unreadable: derived again
