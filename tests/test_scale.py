@@ -177,3 +177,41 @@ def test_cache_dir_follows_xdg_cache_home(tmp_path, monkeypatch):
     (tmp_path / "pivot").mkdir()
     (tmp_path / "pivot" / "robot-x.npz").write_bytes(b"not a zip")
     assert cache.load("robot-x.npz") is None  # unreadable: derived again
+
+
+# ----------------------------------------------------------------------------------------------------
+# Contact pairs searched per facet pair (stages.analyze)
+
+
+def all_pairs(P, N, allowed, cos_t, min_width, best_only):
+    """The squeeze test of every contact against every other (the quadratic reference)."""
+    d = P[None] - P[:, None]
+    dist = np.linalg.norm(d, axis=2)
+    u = d / np.maximum(dist[..., None], 1e-12)
+    score = np.minimum(-np.einsum("ijk,ik->ij", u, N), np.einsum("ijk,jk->ij", u, N))
+    score = np.where(allowed & (dist > min_width), score, -np.inf)
+    ok = score > cos_t
+    if best_only:
+        ok &= np.arange(len(P))[None] == np.argmax(score, axis=1)[:, None]
+    return np.unique(np.sort(np.argwhere(ok), axis=1), axis=0)
+
+
+def test_grouped_pair_search_finds_the_all_pairs_answer(rng):
+    from stages import analyze
+
+    C = 400
+    P = rng.uniform(-0.2, 0.2, (C, 3))
+    N = rng.normal(size=(C, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    fid = rng.integers(-1, 6, C)  # six facets and curved contacts (-1)
+    opposite = np.zeros((6, 6), bool)
+    opposite[[0, 1, 2, 3], [1, 0, 3, 2]] = True
+    ids, curved = np.arange(C), fid < 0
+    groups = [(ids[fid == f], np.sort(ids[np.isin(fid, np.flatnonzero(opposite[f]))])) for f in range(6)]
+    allowed = opposite[np.maximum(fid, 0)][:, np.maximum(fid, 0)] & ~curved[:, None] & ~curved[None]
+    for best in (True, False):
+        got = analyze._antipodal_pairs(P, N, groups, 0.5, 0.04, best)
+        assert len(got) > 10 and np.array_equal(got, all_pairs(P, N, allowed, 0.5, 0.04, best))
+    cone = [(ids[curved], ids), (ids[~curved], ids[curved])]
+    got = analyze._antipodal_pairs(P, N, cone, 0.5, 0.04, False)
+    assert np.array_equal(got, all_pairs(P, N, curved[:, None] | curved[None], 0.5, 0.04, False))
