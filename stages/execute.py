@@ -1047,8 +1047,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                                      collisionFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
         vis = -1
         if frames > 0 or gui:
-            vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(mesh.vertices).tolist(),
-                                      indices=np.asarray(mesh.faces).ravel().tolist(), rgbaColor=[0.2, 0.45, 0.8, 1.0],
+            # The collision mesh: PyBullet refuses a visual shape of a 200k-triangle mesh.
+            vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(shape.mesh.vertices).tolist(),
+                                      indices=np.asarray(shape.mesh.faces).ravel().tolist(),
+                                      rgbaColor=[0.2, 0.45, 0.8, 1.0],
                                       visualFramePosition=X_PO[:3, 3].tolist(),
                                       visualFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
         X_WP0 = plan.X_WO[0] @ X_OP
