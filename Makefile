@@ -43,7 +43,7 @@ $(B)/analysis.png: $(B)/analysis/analysis.json stages/plots.py | $(INSTALLED)
 analysis: $(B)/analysis.png ## analyse the scene's object and draw it (Fig. 4)
 
 SAMPLE_CODE := stages/sample.py stages/poses.py stages/objectmodel.py stages/robot.py stages/stability.py \
-	stages/scene.py $(wildcard data/robots/*)
+	stages/scene.py stages/simplify.py stages/objects.py stages/cache.py $(wildcard data/robots/*)
 $(B)/sample/sample.json: $(SCENE_FILE) $(B)/analysis/analysis.json $(SAMPLE_CODE) $(SHARED) | $(INSTALLED)
 	$(PIVOT) sample $(SCENE_FILE) --analysis $(B)/analysis --out $(B)/sample
 
@@ -82,7 +82,7 @@ mpc: $(R)/trajectories.png ## MPC force and joint trajectories of the plan, draw
 
 SEED ?= 0
 # pivot execute exits 1 when the object misses the goal in physics; execution.json records how.
-$(R)/execution.json: $(R)/trajectories.parquet stages/execute.py $(SHARED) | $(INSTALLED)
+$(R)/execution.json: $(R)/trajectories.parquet stages/execute.py stages/simplify.py stages/objects.py $(SHARED) | $(INSTALLED)
 	$(PIVOT) execute $(SCENE_FILE) --build $(B) --trajectories $< --out $(R) --seed $(SEED) || [ $$? -eq 1 ]
 
 $(R)/execution.png: $(R)/execution.json | $(INSTALLED)

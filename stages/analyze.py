@@ -30,6 +30,7 @@ Works on one watertight triangle mesh in its own frame ``O`` (metres). Outputs, 
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -588,11 +589,23 @@ def _boundary_distance(mesh, segments: dict, p: np.ndarray, facet_idx: np.ndarra
 
 
 def _fcl_mesh(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(mesh.vertices), len(mesh.faces))
-    bvh.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32))
-    bvh.endModel()
-    return fcl.CollisionObject(bvh, fcl.Transform())
+    """The mesh as an fcl collision object at the identity. Its hierarchy (seconds at 200k triangles)
+    is built once per mesh content: the facet contacts, the curved contacts and the pair search share it."""
+    v = np.ascontiguousarray(mesh.vertices, dtype=float)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    key = hashlib.sha256(v.tobytes() + b"|" + f.tobytes()).hexdigest()
+    if key not in _BVH:
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(v), len(f))
+        bvh.addSubModel(v, f)
+        bvh.endModel()
+        _BVH.clear()  # the last mesh's only: one analysis at a time
+        _BVH[key] = bvh
+    return fcl.CollisionObject(_BVH[key], fcl.Transform())
+
+
+#: The fcl hierarchy of the last mesh :func:`_fcl_mesh` saw, by the sha256 of its arrays.
+_BVH: dict[str, fcl.BVHModel] = {}
 
 
 def _balls_free(mesh: trimesh.Trimesh, centres: np.ndarray, radius: float) -> np.ndarray:
@@ -632,17 +645,19 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
     FN = np.stack([segments["nx"], segments["ny"], segments["nz"]], axis=1)
     opposite = FN @ FN.T < -np.cos(np.radians(params.pair_angle_deg))  # (nf, nf) facets with opposite normals
 
-    def facet_rule(a):  # both flat, on opposite facets (fid -1 indexes a facet but is masked)
-        return opposite[fid[a]][:, fid] & ~curved[a, None] & ~curved[None, :]
-
-    def cone_rule(a):
-        return curved[a, None] | curved[None, :]
+    ids = np.arange(len(P))
+    flat_by_facet = {int(f): ids[~curved & (fid == f)] for f in np.unique(fid[~curved])}
+    # Facet pairs: both flat, on opposite facets. Cone pairs: at least one curved.
+    facet_groups = [(rows, np.sort(np.concatenate([flat_by_facet[g] for g in flat_by_facet if opposite[f, g]]
+                                                  + [ids[:0]])))
+                    for f, rows in flat_by_facet.items()]
+    cone_groups = [(ids[curved], ids), (ids[~curved], ids[curved])]
 
     inside = make_segments_inside_fn(mesh)
     width = 2 * params.ball_radius
-    facet_ab = _antipodal_pairs(P, N, facet_rule, np.cos(np.radians(params.pair_angle_deg)), width, True)
+    facet_ab = _antipodal_pairs(P, N, facet_groups, np.cos(np.radians(params.pair_angle_deg)), width, True)
     facet_ab = facet_ab[inside(P[facet_ab[:, 0]], P[facet_ab[:, 1]])]
-    cone_ab = _antipodal_pairs(P, N, cone_rule, np.cos(np.radians(params.cone_angle_deg)), width, False)
+    cone_ab = _antipodal_pairs(P, N, cone_groups, np.cos(np.radians(params.cone_angle_deg)), width, False)
     keep = _spread_pairs(P[cone_ab[:, 0]], P[cone_ab[:, 1]], _squeeze_angle(P, N, cone_ab),
                          max(params.max_pairs - len(facet_ab), 0), inside)
     ab = np.concatenate([facet_ab, cone_ab[keep]])
@@ -660,32 +675,38 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
     }
 
 
-def _antipodal_pairs(P: np.ndarray, N: np.ndarray, rule, cos_t: float, min_width: float,
+def _antipodal_pairs(P: np.ndarray, N: np.ndarray, groups, cos_t: float, min_width: float,
                      best_only: bool) -> np.ndarray:
-    """Unique sorted pairs ``(K, 2)`` passing the squeeze test that ``rule`` allows.
+    """Unique sorted pairs ``(K, 2)`` passing the squeeze test between the contacts each group allows.
 
-    ``P, N (C, 3)``: contact points and outward normals (frame O). ``rule(rows)`` gives the ``(len(rows),
-    C)`` mask of allowed partners. The test: the min-cosine between the line and the two inward normals
-    exceeds ``cos_t`` and the contacts are more than ``min_width`` apart (m). ``best_only``: each
-    contact keeps only its partner of largest min-cosine (ties: the lowest id).
+    ``P, N (C, 3)``: contact points and outward normals (frame O). ``groups``: ``(rows, cols)`` index
+    arrays, ``cols`` ascending: each contact of ``rows`` may pair with those of ``cols`` only (the
+    rule's partners: for facet pairs the contacts on opposite facets, so the search costs the sum of
+    the facet pairs' products instead of every contact against every other). The test: the
+    min-cosine between the line and the two inward normals exceeds ``cos_t`` and the contacts are
+    more than ``min_width`` apart (m). ``best_only``: each contact keeps only its partner of largest
+    min-cosine (ties: the lowest id) among its group's.
     """
-    C = len(P)
     found = [np.zeros((0, 2), dtype=np.int64)]
-    chunk = 512
-    for s in range(0, C, chunk):  # chunks of rows keep the (chunk, C, 3) block small
-        a = np.arange(s, min(s + chunk, C))
-        d = P[None, :, :] - P[a, None, :]
-        dist = np.linalg.norm(d, axis=2)
-        u = d / np.maximum(dist[..., None], tol.zero)
-        ca = -np.einsum("ijk,ik->ij", u, N[a])  # cos between a->b and a's inward normal
-        cb = np.einsum("ijk,jk->ij", u, N)  # cos between b->a and b's inward normal
-        score = np.where(rule(a) & (dist > min_width), np.minimum(ca, cb), -np.inf)
-        ok = score > cos_t
-        if best_only:
-            j = np.argmax(score, axis=1)
-            ok &= np.arange(C)[None, :] == j[:, None]
-        i, j = np.nonzero(ok)
-        found.append(np.stack([a[i], j], axis=1))
+    for rows, cols in groups:
+        if not len(rows) or not len(cols):
+            continue
+        Pc, Nc = P[cols], N[cols]
+        chunk = max(1, 2**18 // len(cols))  # rows per block: the (chunk, cols, 3) block stays small
+        for s in range(0, len(rows), chunk):
+            a = rows[s : s + chunk]
+            d = Pc[None, :, :] - P[a, None, :]
+            dist = np.linalg.norm(d, axis=2)
+            u = d / np.maximum(dist[..., None], tol.zero)
+            ca = -np.einsum("ijk,ik->ij", u, N[a])  # cos between a->b and a's inward normal
+            cb = np.einsum("ijk,jk->ij", u, Nc)  # cos between b->a and b's inward normal
+            score = np.where((dist > min_width) & (cols[None, :] != a[:, None]), np.minimum(ca, cb), -np.inf)
+            ok = score > cos_t
+            if best_only:
+                j = np.argmax(score, axis=1)
+                ok &= np.arange(len(cols))[None, :] == j[:, None]
+            i, j = np.nonzero(ok)
+            found.append(np.stack([a[i], cols[j]], axis=1))
     ab = np.sort(np.concatenate(found), axis=1)
     return np.unique(ab, axis=0) if len(ab) else ab
 

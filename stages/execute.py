@@ -85,8 +85,10 @@ mass, the mesh's inertia). The PyBullet base frame is the principal frame P of t
 the CoM, axes the eigenvectors, right-handed): ``localInertiaDiagonal`` is then the eigenvalues, set
 together with ``mass=`` (``changeDynamics`` with the diagonal alone zeroes a body's mass). Poses
 reported in O are ``X_WO = X_WP X_PO``. The collision shape is a compound of convex hulls that
-follows the mesh exactly where the mesh is a union of convex pieces (see :func:`decompose_convex`),
-cached as an OBJ (one object per hull) keyed by the mesh's sha256; the hulls' collision margin is
+follows the mesh exactly where the mesh is a union of convex pieces (see :func:`decompose_convex`);
+a mesh of more than ``stages.simplify.COLLISION_MAX_FACES`` triangles is simplified first, with its
+error bound in the metrics (:func:`stages.simplify.collision_mesh`). The pieces are cached as an OBJ
+(one object per hull) keyed by the mesh's sha256; the hulls' collision margin is
 ``Params.object_margin`` (Bullet's default of 1 mm would float the object 1 mm).
 
 Friction: Bullet multiplies the two bodies' coefficients, so the table, the obstacles and every
@@ -146,6 +148,7 @@ from stages.artifacts import Field, atomic_path
 from stages.errors import InputError
 from stages.robot import load_robot
 from stages.scene import load_scene
+from stages.simplify import collision_mesh
 
 #: Kinds of trajectory rows.
 KINDS = ("pivot", "tumble", "transit", "hold")
@@ -366,15 +369,25 @@ def _hull_volume(V: np.ndarray) -> float:
 def _unsupported_faces(V: np.ndarray, F: np.ndarray, tol: float) -> np.ndarray:
     """Faces ``(k, 3)`` whose plane has a vertex of the piece more than ``tol`` (m) outside it.
 
-    Slivers (twice the area below 1e-8 m^2) are skipped: their normals are noise.
+    Slivers (twice the area below 1e-8 m^2) are skipped: their normals are noise. A linear function
+    is largest over ``V`` at a vertex of its convex hull, so only the hull's vertices are measured,
+    ``chunk`` faces at a time: memory stays bounded (a 200k-triangle mesh asked for a 109 GiB
+    vertices x faces matrix).
     """
     a = V[F[:, 0]]
     n = np.cross(V[F[:, 1]] - a, V[F[:, 2]] - a)
     ln = np.linalg.norm(n, axis=1)
     ok = ln > 2e-8
     n, a, F = n[ok] / ln[ok, None], a[ok], F[ok]
-    out = V @ n.T - np.einsum("ij,ij->i", a, n)  # (vertices, faces)
-    return F[out.max(axis=0, initial=-np.inf) > tol] if len(F) else F
+    try:
+        H = V[ConvexHull(V).vertices]
+    except (QhullError, ValueError):  # flat or too few points: measure them all
+        H = V
+    d = np.einsum("ij,ij->i", a, n)
+    chunk = max(1, 2**22 // max(len(H), 1))  # 32 MiB of float64 per block
+    out = np.concatenate([(H @ n[s : s + chunk].T).max(axis=0, initial=-np.inf)
+                          for s in range(0, len(F), chunk)] or [np.zeros(0)]) - d
+    return F[out > tol]
 
 
 def _cut(V, F, ax: int, v: float):
@@ -914,7 +927,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     (links other than the balls), ``object_obstacle_contacts`` (sorted names); ``collision``;
     ``collision_times`` (``"<kind>:<name>"`` -> time in s of that pair's first contact, to find it in
     the log); ``torque_saturation`` (fraction of steps with a clipped joint torque); ``success``;
-    ``convex_parts``; ``perturbation`` (what ``randomize`` drew); ``steps``, ``duration`` (s).
+    ``convex_parts``; ``collision_shape`` (``triangles`` of the mesh the hulls come from, the planning
+    mesh's ``mesh_triangles``, and the simplification's error bound ``tolerance`` in m, 0 when the
+    planning mesh itself: :func:`stages.simplify.collision_mesh`); ``perturbation`` (what
+    ``randomize`` drew); ``steps``, ``duration`` (s).
     """
     wall0 = time.perf_counter()
     com_O = np.asarray(com_O, dtype=float).reshape(3)
@@ -935,7 +951,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     plan = check_trajectory(traj, params.dt, arms[0].dof)
     mesh = load_mesh(mesh_path)
     t_dec = time.perf_counter()
-    parts, parts_path, cache_hit = convex_parts(mesh, params.cache_dir)
+    shape = collision_mesh(mesh)
+    parts, parts_path, cache_hit = convex_parts(shape.mesh, params.cache_dir)
     t_dec = time.perf_counter() - t_dec
 
     # Perturbations (seeded) and the body's principal frame.
@@ -1030,8 +1047,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                                      collisionFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
         vis = -1
         if frames > 0 or gui:
-            vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(mesh.vertices).tolist(),
-                                      indices=np.asarray(mesh.faces).ravel().tolist(), rgbaColor=[0.2, 0.45, 0.8, 1.0],
+            # The collision mesh: PyBullet refuses a visual shape of a 200k-triangle mesh.
+            vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(shape.mesh.vertices).tolist(),
+                                      indices=np.asarray(shape.mesh.faces).ravel().tolist(),
+                                      rgbaColor=[0.2, 0.45, 0.8, 1.0],
                                       visualFramePosition=X_PO[:3, 3].tolist(),
                                       visualFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
         X_WP0 = plan.X_WO[0] @ X_OP
@@ -1216,6 +1235,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     metrics.update({
         "torque_saturation": saturated_steps / max(S - 1, 1),
         "convex_parts": len(parts),
+        "collision_shape": {"triangles": len(shape.mesh.faces), "mesh_triangles": len(mesh.faces),
+                            "tolerance": shape.tolerance},
         "perturbation": perturbation,
         "steps": S - 1,
         "duration": float(plan.t[-1] - plan.t[0]),

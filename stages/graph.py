@@ -126,6 +126,10 @@ def _grasp_geometry(tables, grasps, r):
     return p[c], n[c]
 
 
+#: Samples of a motion checked for collisions at once (:func:`check_arm_motion`).
+COLLISION_BLOCK = 8
+
+
 def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),
                      touching=None, batch: bool = False):
     """IK and collisions along object trajectories with both balls on their contacts.
@@ -160,16 +164,22 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
         failed = bad.any(axis=0) & (reason == "ok")
         reason[failed] = res.reason[first[failed], np.flatnonzero(failed)]
     live = np.flatnonzero(reason == "ok")
-    if len(live):
-        ql = q[:, live, 0].reshape(-1, q.shape[-1])
-        qr = q[:, live, 1].reshape(-1, q.shape[-1])
-        X = np.swapaxes(X_traj[live], 0, 1).reshape(-1, 4, 4)
+    # Collisions in blocks of samples, in time order: a motion stops at its first block with a hit,
+    # which holds its first hit (each sample is checked on its own, so the reason is the same).
+    for t0 in range(0, T, COLLISION_BLOCK):
+        if not len(live):
+            break
+        t1 = min(t0 + COLLISION_BLOCK, T)
+        ql = q[t0:t1, live, 0].reshape(-1, q.shape[-1])
+        qr = q[t0:t1, live, 1].reshape(-1, q.shape[-1])
+        X = np.swapaxes(X_traj[live, t0:t1], 0, 1).reshape(-1, 4, 4)
         ok, why = collide(ql, qr, X, np.broadcast_to(np.asarray(touching, bool), (len(ql), 2)))
-        ok = ok.reshape(T, len(live))
-        why = why.reshape(T, len(live))
+        ok = ok.reshape(t1 - t0, len(live))
+        why = why.reshape(t1 - t0, len(live))
         first = np.argmax(~ok, axis=0)
         failed = ~ok.all(axis=0)
         reason[live[failed]] = why[first[failed], np.flatnonzero(failed)]
+        live = live[~failed]
     return reason == "ok", reason.astype(str), q
 
 

@@ -38,10 +38,12 @@ farthest from the polygon's centre (§4.1's rotational vertices, one under each 
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import fcl
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from stages import connect, mpc, se3
 from stages.analyze import _polygon_margins
@@ -105,6 +107,55 @@ class ObjectModel:
     com: np.ndarray  # (3,)
     mesh_vertices: np.ndarray  # (n, 3) object mesh, for obstacle checks
     mesh_faces: np.ndarray  # (m, 3)
+    #: per placement, its support triangles and hull rim (:func:`support_sets`), derived on construction
+    supports: tuple = field(init=False, repr=False, compare=False)
+    #: the mesh's fcl bounding-volume hierarchy, built on first use (:func:`_object_fcl`)
+    bvh: list = field(default_factory=list, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "supports", support_sets(self.mesh_vertices, self.mesh_faces, self.X_TO))
+
+
+class SupportSet(NamedTuple):
+    """The mesh where it lies in one placement's support plane (frame O): what :func:`table_support` needs.
+
+    vertices : (u, 3) float m, the vertices of the mesh triangles within ``tol`` of the plane.
+    faces : (k, 3) int, those triangles, as indices into ``vertices``.
+    rim : (r, 3) float m, the vertices within ``RIM_TOL`` of their convex hull's boundary in the plane
+        (hull vertices and the points on its edges): wholly on the table, the contact polygon is the
+        hull of these and the support corners, whatever the pose on the placement.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rim: np.ndarray
+
+
+#: Distance (m) within which a support vertex counts as on its hull's boundary (:class:`SupportSet`):
+#: far above the 1e-9 m rounding and the 1e-12 m^2 collinearity test of :func:`_convex_hull_2d`, so the
+#: rim keeps every point that hull can return.
+RIM_TOL = 1e-7
+#: Distance (m) from a placement's plane within which a mesh vertex lies in it (:func:`table_support`).
+SUPPORT_TOL = 1e-4
+
+
+def support_sets(vertices: np.ndarray, faces: np.ndarray, X_TO: np.ndarray, tol: float = SUPPORT_TOL) -> tuple:
+    """One :class:`SupportSet` per placement (``X_TO (G, 4, 4)``) of the mesh ``vertices (n, 3)`` m,
+    ``faces (m, 3)``: computed once, so that the per-pose :func:`table_support` does not rescan the mesh."""
+    out = []
+    for Xp in np.asarray(X_TO, dtype=float).reshape(-1, 4, 4):
+        z = vertices @ Xp[2, :3] + Xp[2, 3]
+        used, local = np.unique(faces[np.all(np.abs(z[faces]) < tol, axis=1)], return_inverse=True)
+        xy = vertices[used] @ Xp[:2, :3].T
+        rim = np.arange(len(used))
+        if len(used) >= 3:
+            try:
+                eq = ConvexHull(xy).equations
+                rim = rim[(xy @ eq[:, :2].T + eq[:, 2]).max(axis=1) >= -RIM_TOL]
+            except QhullError:  # collinear or coincident: every point may be on the hull
+                pass
+        out.append(SupportSet(vertices[used], local.reshape(-1, 3), vertices[used[rim]]))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -387,7 +438,7 @@ def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params
     return prev
 
 
-def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = 1e-4) -> np.ndarray:
+def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = SUPPORT_TOL) -> np.ndarray:
     """Where the object at ``X`` on placement ``g`` touches the table, ``(k, 2)`` m, W: the convex
     hull of the mesh's triangles that lie in the support plane (within ``tol`` m), each clipped to the
     table top (the table's edge cuts them when the object overhangs), and of the support corners (the
@@ -402,39 +453,64 @@ def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, t
     The object rests on that polygon; its CoM projection inside it is SP, outside it USP (the object
     tips over the polygon's edge unless a ball holds it, §5.1, Fig. 14).
     """
-    Xp = model.X_TO[g]
-    z = model.mesh_vertices @ Xp[2, :3] + Xp[2, 3]
-    tri = model.mesh_faces[np.all(np.abs(z[model.mesh_faces]) < tol, axis=1)]
+    if tol == SUPPORT_TOL:
+        verts, tri, rim = model.supports[g]
+    else:
+        verts, tri, rim = support_sets(model.mesh_vertices, model.mesh_faces, model.X_TO[g : g + 1], tol)[0]
     corners = se3.transform_points(X, model.vertices[np.asarray(model.support[g], dtype=np.int64)])[:, :2]
     corners = corners[np.all(np.abs(corners) <= half, axis=1)]
     if len(tri) == 0:
         return _convex_hull_2d(corners).reshape(-1, 2)
-    V = se3.transform_points(X, model.mesh_vertices[tri])[..., :2]                  # (n, 3, 2)
-    inside = np.all(np.abs(V) <= half, axis=2)                                      # (n, 3)
-    beyond = np.any(np.all(V > half, axis=1) | np.all(V < -half, axis=1), axis=1)  # all past one side
-    pieces = [corners, V[inside.all(axis=1)].reshape(-1, 2)]
-    for poly in V[~beyond & ~inside.all(axis=1)]:  # only those the table's edge may cut
-        for axis in (0, 1):  # Sutherland–Hodgman against the four table sides
-            for sign in (1.0, -1.0):
-                poly = _clip(poly, axis, sign, half[axis])
-        pieces.append(poly)
-    pts = np.concatenate(pieces)
-    return _convex_hull_2d(pts).reshape(-1, 2) if len(pts) else pts
+    level = abs((X @ se3.invert(model.X_TO[g]))[2, 2] - 1.0) < 1e-12  # a turn about the vertical
+    R = se3.transform_points(X, rim)[:, :2]
+    if level and np.all(np.abs(R) <= half):  # wholly on the table: the placement's rim suffices
+        return _convex_hull_2d(np.concatenate([corners, R])).reshape(-1, 2)
+    U = se3.transform_points(X, verts)[:, :2]                                   # (u, 2)
+    inside = np.all(np.abs(U) <= half, axis=1)[tri].all(axis=1)                 # (n,) wholly on the table
+    beyond = np.any((U > half)[tri].all(axis=1) | (U < -half)[tri].all(axis=1), axis=1)  # all past one side
+    kept = np.zeros(len(U), dtype=bool)
+    kept[tri[inside].ravel()] = True
+    P = U[tri[~beyond & ~inside]]  # (m, 3, 2) only those the table's edge may cut
+    n = np.full(len(P), 3)
+    for axis in (0, 1):  # Sutherland–Hodgman against the four table sides, all triangles at once
+        for sign in (1.0, -1.0):
+            P, n = _clip_all(P, n, axis, sign, half[axis])
+    clipped = P[np.arange(P.shape[1]) < n[:, None]]
+    pts = np.concatenate([corners, U[kept], clipped])
+    return _convex_hull_2d(_near_hull(pts)).reshape(-1, 2) if len(pts) else pts
 
 
-def _clip(poly: np.ndarray, axis: int, sign: float, limit: float) -> np.ndarray:
-    """The part of polygon ``poly (k, 2)`` with ``sign * x[axis] <= limit``."""
-    if len(poly) == 0:
-        return poly
-    d = sign * poly[:, axis] - limit  # <= 0 inside
-    out = []
-    for i in range(len(poly)):  # a handful of vertices
-        a, b, da, db = poly[i], poly[(i + 1) % len(poly)], d[i], d[(i + 1) % len(poly)]
-        if da <= 0:
-            out.append(a)
-        if (da < 0 < db) or (db < 0 < da):
-            out.append(a + (b - a) * (da / (da - db)))
-    return np.array(out).reshape(-1, 2)
+def _clip_all(P: np.ndarray, n: np.ndarray, axis: int, sign: float, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_clip` of many polygons at once: polygon ``i`` is ``P[i, :n[i]]`` (``P (k, w, 2)``);
+    returns them clipped the same way (each vertex kept if inside, then the crossing of its edge to
+    the next, with the same arithmetic) as ``(P', n')``, ``P' (k, w + 1, 2)``."""
+    k, w = P.shape[:2]
+    idx = np.arange(w)
+    valid = idx < n[:, None]
+    nxt = np.where(idx + 1 < n[:, None], idx + 1, 0)
+    A, B = P, np.take_along_axis(P, nxt[..., None], axis=1)
+    da, db = sign * A[..., axis] - limit, sign * B[..., axis] - limit
+    keep = valid & (da <= 0)
+    cross = valid & (((da < 0) & (0 < db)) | ((db < 0) & (0 < da)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = A + (B - A) * (da / (da - db))[..., None]
+    cand = np.stack([A, X], axis=2).reshape(k, 2 * w, 2)  # each vertex, then its edge's crossing
+    emit = np.stack([keep, cross], axis=2).reshape(k, 2 * w)
+    order = np.argsort(~emit, axis=1, kind="stable")[:, : w + 1]
+    out = np.take_along_axis(cand, order[..., None], axis=1)
+    return out, emit.sum(axis=1)
+
+
+def _near_hull(p: np.ndarray) -> np.ndarray:
+    """The points of ``p (k, 2)`` within ``RIM_TOL`` of their convex hull's boundary (Qhull), all of
+    them when Qhull cannot tell (collinear or too few): the only ones :func:`_convex_hull_2d` may keep."""
+    if len(p) < 16:
+        return p
+    try:
+        eq = ConvexHull(p).equations
+    except QhullError:
+        return p
+    return p[(p @ eq[:, :2].T + eq[:, 2]).max(axis=1) >= -RIM_TOL]
 
 
 def _extent(p: np.ndarray) -> float:
@@ -656,12 +732,15 @@ def _cross2(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _object_fcl(model: ObjectModel) -> fcl.CollisionObject:
-    """The object mesh as an fcl collision object (at the identity)."""
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
-    bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
-    bvh.endModel()
-    return fcl.CollisionObject(bvh, fcl.Transform())
+    """The object mesh as an fcl collision object (at the identity); its hierarchy is built once per
+    model (seconds on a 200k-triangle mesh), each call gets its own object to move."""
+    if not model.bvh:
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
+        bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
+        bvh.endModel()
+        model.bvh.append(bvh)
+    return fcl.CollisionObject(model.bvh[0], fcl.Transform())
 
 
 def obstacles_hit(model: ObjectModel, X: np.ndarray, obstacles) -> list[str]:

@@ -503,23 +503,28 @@ class Robot:
         """Seed library of ``arm``: postures ``(M, n)``, their distance from the rest posture ``(M,)``
         (rms rad) and a k-d tree of their ball centres. Postures in collision with the arm itself, the
         trunk or the other arm at rest are left out."""
-        key = ("library", arm)
+        q, cost = _derived(self, ("library", arm), lambda: self._library_postures(arm))
+        key = ("library_tree", arm)
         if key not in self._cache:
-            a, prm = self.arm(arm), self.ik_params
-            rng = np.random.default_rng(prm.library_seed)
-            M = prm.library_size
-            n_uni = int(round(prm.library_uniform * M))
-            span = a.upper - a.lower
-            near = a.q_rest + rng.normal(0.0, prm.library_sigma, (M - n_uni, a.dof)) * span
-            uni = rng.uniform(a.lower, a.upper, (n_uni, a.dof))
-            q = np.clip(np.concatenate([near, uni]), a.lower, a.upper)
-            other = next(b for name, b in self.arms.items() if name != arm)
-            rest = np.broadcast_to(other.q_rest, (M, other.dof))
-            check = make_collision_fn(self)
-            q = q[check(q, rest)[0] if arm == "left" else check(rest, q)[0]]
-            cost = np.sqrt(np.mean((q - a.q_rest) ** 2, axis=1))
             self._cache[key] = (q, cost, cKDTree(self.eef_position(arm, q)))
         return self._cache[key]
+
+    def _library_postures(self, arm: str) -> tuple[np.ndarray, np.ndarray]:
+        """The seed library's postures ``(M, n)`` and their costs ``(M,)`` (:meth:`_library`)."""
+        a, prm = self.arm(arm), self.ik_params
+        rng = np.random.default_rng(prm.library_seed)
+        M = prm.library_size
+        n_uni = int(round(prm.library_uniform * M))
+        span = a.upper - a.lower
+        near = a.q_rest + rng.normal(0.0, prm.library_sigma, (M - n_uni, a.dof)) * span
+        uni = rng.uniform(a.lower, a.upper, (n_uni, a.dof))
+        q = np.clip(np.concatenate([near, uni]), a.lower, a.upper)
+        other = next(b for name, b in self.arms.items() if name != arm)
+        rest = np.broadcast_to(other.q_rest, (M, other.dof))
+        check = make_collision_fn(self)
+        q = q[check(q, rest)[0] if arm == "left" else check(rest, q)[0]]
+        cost = np.sqrt(np.mean((q - a.q_rest) ** 2, axis=1))
+        return q, cost
 
 
 def _check_q(a: Arm, q: np.ndarray, n_rows: int | None = None) -> np.ndarray:
@@ -737,6 +742,8 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
     # What the robot derives from these inputs alone (self-collision pairs, IK seed libraries: a few
     # tenths of a second) is shared by every robot loaded with the same inputs in this process, so
     # stages run one after another in one process (``make bench``, the tests) derive it once.
+    # It is also kept on disk (``stages.cache``), named by these inputs and this module's source, so
+    # that every stage process after the first reads it instead of deriving it again.
     key = (hashlib.sha256(path.read_bytes()).hexdigest(), X_WB.tobytes(), tuple(eef_links), float(torso_angle),
            arms["left"].q_rest.tobytes(), arms["right"].q_rest.tobytes(),
            replace(ik_params, threads=1, min_chunk=0))  # how the work is split changes no result
@@ -746,8 +753,51 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
 
 @lru_cache(maxsize=8)
 def _shared_cache(key: tuple) -> dict:
-    """One cache dict per distinct robot (``load_robot``); a handful are kept."""
-    return {}
+    """One cache dict per distinct robot (``load_robot``); a handful are kept. Its ``"disk"`` entry
+    is the key's part of the on-disk entries' names (:func:`_derived`)."""
+    return {"disk": (key, hashlib.sha256(Path(__file__).read_bytes()).hexdigest())}
+
+
+def _derived(robot: Robot, key: tuple, derive) -> tuple[np.ndarray, ...]:
+    """``derive()`` (a tuple of arrays derived from the robot alone), computed once per robot and
+    process and kept on disk across processes (``stages.cache``: named by the robot's inputs, ``key``
+    and this module's source, so never stale; the same arrays either way)."""
+    from stages import cache
+
+    if key not in robot._cache:
+        disk = robot._cache.get("disk")  # None for a robot not made by load_robot: not kept on disk
+        name = cache.entry_name("robot", disk, key) if disk is not None else ""
+        stored = cache.load(name) if name else None
+        if stored:
+            robot._cache[key] = _unflatten(stored)
+        else:
+            robot._cache[key] = tuple(derive())
+            if name:
+                cache.save(name, _flatten(robot._cache[key]))
+    return robot._cache[key]
+
+
+def _flatten(items: tuple) -> dict[str, np.ndarray]:
+    """Arrays and lists of arrays as named arrays: ``a<i>`` for an array, ``a<i>_<j>`` for list members."""
+    out = {}
+    for i, x in enumerate(items):
+        if isinstance(x, list):
+            out.update({f"a{i}_{j}": np.asarray(y) for j, y in enumerate(x)})
+        else:
+            out[f"a{i}"] = np.asarray(x)
+    return out
+
+
+def _unflatten(arrays: dict[str, np.ndarray]) -> tuple:
+    """The inverse of :func:`_flatten`."""
+    items: dict[int, object] = {}
+    for name in sorted(arrays, key=lambda n: tuple(int(k) for k in n[1:].split("_"))):
+        i, _, j = name[1:].partition("_")
+        if j:
+            items.setdefault(int(i), []).append(arrays[name])
+        else:
+            items[int(i)] = arrays[name]
+    return tuple(items[i] for i in range(len(items)))
 
 
 def _make_arm(path, name, root, chain, links, joints, X_W, q_rest) -> Arm:
@@ -946,11 +996,15 @@ class _Mesh:
     planes: np.ndarray  # (F, 4) convex-hull face planes n . x <= d, unit n
     convex: bool  # the mesh is its own convex hull
     mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
+    coarse: object  # its simplification (stages.simplify.collision_mesh): the same inside answer for
+    coarse_tol: float  # ... points farther than this (m) from the surface; 0 when it is the mesh
 
 
 def _make_mesh(mesh, where: str) -> _Mesh:
     import fcl
     import trimesh
+
+    from stages.simplify import CollisionMesh, collision_mesh
 
     if not isinstance(mesh, trimesh.Trimesh):
         try:
@@ -972,9 +1026,10 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     d = np.einsum("ij,ij->i", n, hull.triangles[:, 0])
     planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
     convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
+    coarse = collision_mesh(mesh) if not convex else CollisionMesh(mesh, 0.0)
     return _Mesh(fcl_obj=fcl.CollisionObject(bvh, fcl.Transform()), centre=centre,
                  radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo, hi=hi, planes=planes,
-                 convex=convex, mesh=mesh)
+                 convex=convex, mesh=mesh, coarse=coarse.mesh, coarse_tol=coarse.tolerance)
 
 
 def _capsules_W(a: Arm, qT: np.ndarray):
@@ -1304,9 +1359,12 @@ def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.0
     (fixed seed), e.g. the forearm and the ball, which the wrist's limits keep apart. Cached on the
     robot.
     """
-    key = ("self_pairs", samples, never_clearance)
-    if key in robot._cache:
-        return robot._cache[key]
+    return _derived(robot, ("self_pairs", samples, never_clearance),
+                    lambda: _derive_self_pairs(robot, samples, never_clearance))
+
+
+def _derive_self_pairs(robot: Robot, samples: int, never_clearance: float) -> tuple[np.ndarray, ...]:
+    """What :func:`_self_pairs` returns, derived from ``samples`` random postures."""
     arms, st = (robot.arm("left"), robot.arm("right")), robot.static
     rng = np.random.default_rng(0)
     box_inv = [se3.invert(X) for X in st.box_X_W]
@@ -1338,8 +1396,7 @@ def _self_pairs(robot: Robot, samples: int = 10000, never_clearance: float = 0.0
     lr = np.array([(i, j) for i in range(len(rl)) for j in range(len(rr))
                    if keep(np.sqrt(_seg_seg_dist2(Al[:, i], Bl[:, i], Ar[:, j], Br[:, j])) - rl[i] - rr[j])],
                   dtype=int).reshape(-1, 2)
-    robot._cache[key] = (*out, lr)
-    return robot._cache[key]
+    return (*out, lr)
 
 
 class _Rows:
@@ -1442,8 +1499,11 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
     inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
     if inside.any() and not msh.convex:
+        # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
+        # surface: a simplification that moved no surface by more than rc answers alike, faster.
+        test_mesh = msh.coarse if msh.coarse_tol < rc[inside].min() else msh.mesh
         with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
-            inside[inside] = msh.mesh.contains(a[:, inside].T)
+            inside[inside] = test_mesh.contains(a[:, inside].T)
     hit |= inside
     order = np.lexsort((k[hit], c[hit]))
     return k[hit][order], c[hit][order]
