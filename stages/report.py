@@ -126,8 +126,9 @@ def _physics_lines(e: dict, rb: dict | None) -> list[str]:
     err = 100 * e.get("final_position_error", 0)
     out = [f"- physics (nominal): success {e.get('success')}"
            f"{' (failed: ' + ', '.join(e.get('failures', [])) + ')' if e.get('failures') else ''}, final error "
-           f"{err:.2f} cm / {e.get('final_yaw_error_deg', 0):.2f}° / tilt {_fmt(e.get('final_tilt_error_deg'), '.2f')}°"
-           f" {_fmt(e.get('rest_duration'), '.1f')} s after the release (released {_fmt(e.get('released'))}, "
+           f"{err:.2f} cm / {e.get('final_yaw_error_deg', 0):.2f}° / tilt "
+           f"{_fmt(e.get('final_tilt_error_deg'), '.2f')}°, {_fmt(e.get('rest_duration'), '.1f')} s after the "
+           f"release (released {_fmt(e.get('released'))}, "
            f"retreated {_fmt(e.get('retreated'))}, at rest {_fmt(e.get('at_rest'))}), max deviation from the "
            f"planned path {100 * e.get('max_com_deviation', 0):.2f} cm, fell {e.get('fell')}",
            f"- ball force: peak {_fmt(e.get('max_ball_force'), '.1f')} N (20 ms average; one solver step "
@@ -136,9 +137,9 @@ def _physics_lines(e: dict, rb: dict | None) -> list[str]:
            f"commanded at its limit {_fmt(e.get('time_at_force_bound'), '.1f')} s; planned peak "
            f"{_fmt(e.get('max_planned_ball_force'), '.1f')} N",
            f"- support slip, worst: {_fmt(e.get('max_support_slip', None) and 1000 * e['max_support_slip'], '.1f')}"
-           f" mm (primitive {_fmt(e.get('worst_slip_primitive'))}), "
+           f" mm (primitive {_fmt(e.get('worst_slip_primitive'), 'd')}), "
            f"{_fmt(e.get('max_support_rotation_slip_deg'), '.2f')}° of rotation (primitive "
-           f"{_fmt(e.get('worst_rotation_slip_primitive'))}); per primitive: " + ", ".join(
+           f"{_fmt(e.get('worst_rotation_slip_primitive'), 'd')}); per primitive: " + ", ".join(
                f"{s['primitive']} {s['kind']} {1000 * s['translation']:.1f} mm / {s['rotation_deg']:.2f}°"
                for s in e.get("slip", []))]
     if rb is not None:
