@@ -1038,3 +1038,23 @@ def test_run_seeds_writes_the_distribution(piano_analysis, pivot_case, tmp_path)
     assert all(r["perturbation"]["mass_factor"] != 1.0 for r in s["runs"])
     saved = artifacts.read_json(tmp_path / "out" / "robustness.json", "robustness")
     assert saved["succeeded"] == 0 and (tmp_path / "out" / "seeds" / "seed2" / "execution.json").is_file()
+
+
+def test_perception_sees_the_pose_of_latency_ago_with_its_noise():
+    """The controller's one outside input (no ground truth): the pose ``perception_latency`` s old, with
+    Gaussian noise of the documented size, deterministic for a seed."""
+    p = execute.Params(perception_latency=0.1, perception_noise=0.0, perception_noise_deg=0.0)
+    seen = execute._Perception(100, np.eye(4), p)
+    seen.pose[:, 0] = np.arange(100) * 1e-3  # x grows 1 mm per step
+    seen.pose[:, 6] = 1.0
+    assert seen.measure(50)[0, 3] == pytest.approx((50 - 24) * 1e-3)  # 0.1 s = 24 steps of 1/240 s
+    assert seen.measure(10)[0, 3] == 0.0  # before the first frame: the first
+    noisy = execute._Perception(100, np.eye(4), execute.Params(seed=3))
+    noisy.pose[:, 6] = 1.0
+    X = np.stack([noisy.measure(50) for _ in range(2000)])
+    assert np.std(X[:, :3, 3], axis=0) == pytest.approx([0.001] * 3, rel=0.1)
+    tilt = np.degrees(np.arccos(np.clip(X[:, 2, 2], -1.0, 1.0)))  # two axes of 0.5 deg: Rayleigh, mean 0.63
+    assert np.mean(tilt) == pytest.approx(0.5 * np.sqrt(np.pi / 2), rel=0.1)
+    again = execute._Perception(100, np.eye(4), execute.Params(seed=3))
+    again.pose[:, 6] = 1.0
+    np.testing.assert_array_equal(again.measure(50), X[0])
