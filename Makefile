@@ -80,10 +80,13 @@ $(R)/trajectories.png: $(R)/trajectories.parquet stages/plots.py | $(INSTALLED)
 
 mpc: $(R)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
 
+# SEED 0 runs the nominal physics, N > 0 perturbs it; SEEDS=K also runs seeds 1..K (robustness.json).
 SEED ?= 0
+SEEDS ?= 0
 # pivot execute exits 1 when the object misses the goal in physics; execution.json records how.
 $(R)/execution.json: $(R)/trajectories.parquet stages/execute.py stages/simplify.py stages/objects.py $(SHARED) | $(INSTALLED)
-	$(PIVOT) execute $(SCENE_FILE) --build $(B) --trajectories $< --out $(R) --seed $(SEED) || [ $$? -eq 1 ]
+	$(PIVOT) execute $(SCENE_FILE) --build $(B) --trajectories $< --out $(R) --seed $(SEED) --seeds $(SEEDS) \
+	  || [ $$? -eq 1 ]
 
 $(R)/execution.png: $(R)/execution.json | $(INSTALLED)
 	$(PIVOT) show execution $(R) --scene $(SCENE_FILE) --png $@
@@ -113,10 +116,12 @@ reproduce: $(INSTALLED) ## all experiment scenes, full planner and ablations, in
 	  if [ -n "$$v" ] && [ -f $$b/full/execution.json ] && \
 	     $(PIVOT) diff $$b/full/plan.json $$b/$$v/plan.json --only steps > /dev/null 2>&1; then \
 	    for f in trajectories.parquet trajectories.json trajectories.png execution.parquet execution.json \
-	             execution.png execution.gif frames.npz; do [ ! -f $$b/full/$$f ] || cp $$b/full/$$f $$b/$$v/; done; \
+	             execution.png execution.gif frames.npz robustness.json; do [ ! -f $$b/full/$$f ] || cp $$b/full/$$f $$b/$$v/; done; \
 	    continue; fi; \
-	  $(MAKE) --no-print-directory -s -k SCENE={} VARIANT=$$v mpc execute > /dev/null 2>&1 || echo "{} $${v:-full}: stopped"; \
+	  $(MAKE) --no-print-directory -s -k SCENE={} VARIANT=$$v SEEDS=10 mpc execute > /dev/null 2>&1 \
+	    || echo "{} $${v:-full}: stopped"; \
 	  done; echo "{}: done"'
+	$(MAKE) --no-print-directory -s SCENE=exp1_reach_first VARIANT=no-regrasp plan > /dev/null 2>&1 || true
 	$(PIVOT) report build --out build/report/README.md
 
 # The standard benchmark: every object family x 6 goals, 2 physics seeds, on a Dask LocalCluster of 2

@@ -22,8 +22,10 @@ def execute(
     build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
     trajectories: Annotated[Path | None, typer.Option(help="Default <build>/full/trajectories.parquet.")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default: beside it).")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the physics perturbations (with --randomize).")] = 0,
-    randomize: Annotated[bool, typer.Option(help="Perturb friction, CoM, inertia and mass (robustness runs).")] = False,
+    seed: Annotated[int, typer.Option(min=0, help="0: the nominal physics; N > 0: friction, mass, CoM, inertia "
+                                      "and the initial position perturbed, drawn from seed N.")] = 0,
+    seeds: Annotated[int, typer.Option(min=0, help="Also run seeds 1..K (perturbed) into <out>/seeds/ and "
+                                       "write <out>/robustness.json.")] = 0,
     gui: Annotated[bool, typer.Option(help="Open PyBullet's window (results are the same).")] = False,
     frames: Annotated[int, typer.Option(help="Frames to render for pivot show execution.")] = 24,
 ) -> None:
@@ -35,16 +37,25 @@ def execute(
     b = build or Path("build") / scene.stem
     trajectories = trajectories or b / "full" / "trajectories.parquet"
     out = out or trajectories.parent
-    params = replace(stage.Params(), seed=seed, randomize=randomize)
+    params = replace(stage.Params(), seed=seed)
     with cli_errors():
         res = stage.run(scene, b / "analysis", trajectories, out, params, frames=frames, gui=gui,
                         producer=f"execute {scene}")
-    m = res.metrics
-    info(f"{scene.stem}: success {m['success']}: final error {100 * m['final_position_error']:.2f} cm / "
-         f"{m['final_yaw_error_deg']:.2f}°, max pivot slip {1000 * m['max_pivot_slip']:.1f} mm, edge slip "
-         f"{1000 * m['max_edge_slip']:.1f} mm, fell {m['fell']}, "
-         f"collision {m['collision']}; {res.timings.get('sim_speed', 0):.0f}x real time -> {out}/execution.json")
-    if not m["success"]:
+        m = res.metrics
+        failed = f" (failed: {', '.join(m['failures'])})" if m["failures"] else ""
+        info(f"{scene.stem}: success {m['success']}{failed}: final error {100 * m['final_position_error']:.2f} cm"
+             f" / {m['final_yaw_error_deg']:.2f}° / tilt {m['final_tilt_error_deg']:.2f}°, peak ball force "
+             f"{m['max_ball_force']:.1f} N of {m['force_bound']:.0f}, worst support slip "
+             f"{1000 * m['max_support_slip']:.1f} mm / {m['max_support_rotation_slip_deg']:.2f}°; "
+             f"{res.timings.get('sim_speed', 0):.0f}x real time -> {out}/execution.json")
+        robust_ok = True
+        if seeds:
+            summary = stage.run_seeds(scene, b / "analysis", trajectories, out, params, seeds,
+                                      producer=f"execute {scene} --seeds {seeds}")
+            robust_ok = summary["succeeded"] >= summary["required"]
+            info(f"{scene.stem}: {summary['succeeded']} of {seeds} perturbed seeds succeed (need "
+                 f"{summary['required']}) -> {out}/robustness.json")
+    if not m["success"] or not robust_ok:
         raise typer.Exit(code=1)
 
 
@@ -56,7 +67,8 @@ def run(
     scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
     build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
     variant: Annotated[str, typer.Option(help="full, no-regrasp, no-tumble or no-usp.")] = "full",
-    seed: Annotated[int, typer.Option(help="Seed of the execution.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the execution: 0 the nominal physics, N > 0 perturbed "
+                                      "(pivot execute --seed).")] = 0,
     figures: Annotated[bool, typer.Option(help="Also draw every stage's figure.")] = True,
 ) -> None:
     """The whole chain analyze -> sample -> graph -> plan -> mpc -> execute through Make (only what changed
@@ -131,6 +143,8 @@ def _summary(b: Path, v: str, times: dict, name: str) -> bool:
         slip = 1000 * ex.get("max_pivot_slip", 0)
         t.add_row("physics", f"success {ex.get('success')}, final error {err:.2f} cm / {yaw:.2f}°, pivot slip "
                   f"{slip:.1f} mm, fell {ex.get('fell')}, collision {ex.get('collision')}")
+        if ex.get("failures"):
+            t.add_row("failed criteria", ", ".join(ex["failures"]))
     t.add_row("time per stage", ", ".join(f"{k} {s:.1f} s" for k, s in times.items()))
     t.add_row("outputs", str(b / v))
     console.print(t)

@@ -25,7 +25,7 @@ impedance of the ball's centre (``Params.task = "position"``, 3 task coordinates
 joints as a posture in its null space::
 
     tau = J^T W + N (Kq (q* - q) + Dq (q*' - q')) + h(q, q')
-    W   = K_eff e + D e',   e = x* - x,   W += w F_plan,   |W| <= force_limit
+    W   = K_eff e + D e',   e = x* - x,   W += w F_plan,   |W| <= (1 - force_margin) F_max
 
 ``J`` is the 3 x n Jacobian of the ball centre, ``h`` gravity and Coriolis torques
 (``calculateInverseDynamics``), ``N = I - J^T Jbar^T`` the dynamically consistent null-space
@@ -59,6 +59,34 @@ holds the object alone between primitives (USP, the other ball in transit; :func
 aims at its planned contact moved by the object's drift from the plan, measured once when that hold
 begins: the object then lies a few mm off its plan, out of reach of the feed-forward's offset. The torso joint
 is held at the planning angle by a stiff position motor.
+
+Force bound: ``F_max`` is the scene's ``robot.max_eef_force`` (50 N, the arm's payload), the bound
+the planner's stability check and the MPC put on each ball (the MPC on the normal component; with
+its friction pyramid the planned force's magnitude reaches 51 N on Exp. 2). The commanded force,
+feed-forward and squeeze included, is clipped below it (``force_margin``); the squeeze is made
+shallower where the planned force leaves it no room (:func:`_squeeze_depth`). The ball's measured
+force on the object (normal plus friction) is judged against ``F_max`` itself.
+
+Perception
+----------
+The controller reads the robot's own state (joint positions and velocities, hence the ball centres
+and velocities) every step. The object's pose is the one input from outside the robot, read only
+when a lone hold begins (above): an explicit perception model, the simulated pose ``perception_latency``
+s old (0.1 s: a camera frame plus processing) with Gaussian noise of ``perception_noise`` (1 mm per
+axis) and ``perception_noise_deg`` (0.5 deg about each axis), what a fiducial-marker tracker at 1 m
+gives; drawn from the run's seed, so a run stays deterministic. No other ground truth reaches the
+controller; the simulator's state is read otherwise only to log and judge the run.
+
+Release and success
+-------------------
+A robot's run ends with its hands off the object: :func:`with_release` appends the release (the
+forces ramp out, the balls back off along their contact normals) and ``settle_time`` s of waiting.
+``success`` needs every criterion, each a field of the metrics (``failures`` lists the codes of
+:data:`FAILURES` that fail): not ``fell``, no ``collision``, ``within_force_bound``, ``released``
+(no ball touches at the end), ``retreated`` (each ball at least ``retreat_clearance`` from the
+object), ``tilt_ok`` (up axis within ``success_tilt_deg`` of the goal's: the right face down, flat),
+``at_rest`` (still for at least ``settle_time`` since the release, lowest point on the table),
+``position_ok`` and ``yaw_ok`` (CoM projection and yaw to the goal at the end of the run).
 
 Ball rotation (notes: a ball that only translates turns the object ``(L + 2r) / L`` times the
 command). With sticking friction the ball's material point at the contact moves with the object's,
@@ -99,12 +127,14 @@ stays put (the pivot's slip, 0.5-1.3 mm, is the same either way).
 
 Log and metrics
 ---------------
-The log has one entry per trajectory row (:data:`LOG_FIELDS`), sampled after the row's physics
+The log has one entry per trajectory row, the release's rows (kind ``"release"``) included
+(:data:`LOG_FIELDS`), sampled after the row's physics
 steps (the controller itself runs every step, targets interpolated between rows): the object pose
 ``x..qw`` and the planned one ``plan_x..plan_qw``; ``com_error`` (m, CoM distance), ``rot_error``
 (rad, rotation angle) and ``tilt_error`` (rad, angle between the actual and planned up axes) from the
 plan; ``pivot_x/y/z`` and ``pivot_slip`` (the support vertex, below) and ``lowest_z`` (lowest hull
-vertex, m); per ball the summed normal force on the object ``left_force``/``right_force`` (N) and
+vertex, m); per ball the magnitude of its force on the object, normal plus friction,
+``left_force``/``right_force`` (N) and
 whether it touches, ``left_touch``/``right_touch`` (``getContactPoints`` between ball link and
 object); ``table_force`` (N); ``left_ball_error``/``right_ball_error`` (m, ball centre from its
 planned position, which includes the squeeze and the rolling shift); ``joint_error`` (rad, largest
@@ -113,7 +143,9 @@ measured joints ``q_left``/``q_right`` ``(T, n)``. The support vertex of a stret
 same ``primitive`` and ``kind`` is the hull vertex that the plan keeps most nearly fixed on the table
 (the pivot vertex of a pivot, an end of a tumble's edge); its slip is its horizontal displacement since
 the stretch began. A tumble turns about an edge, so its ``pivot_slip`` is the edge's: the larger
-slip of the edge's two ends (``pivot_x/y/z`` stay the first end). Collisions (robot-table,
+slip of the edge's two ends (``pivot_x/y/z`` stay the first end). ``support_rotation_slip`` (rad) is
+the rotation the object made since its stretch began that the plan did not make (a pivot's planned
+turn is not slip; a hold's or a regrasp's turn is). Collisions (robot-table,
 robot-obstacle, robot-object other than the balls, object-obstacle) are checked at every physics step.
 Metrics are deterministic (same inputs and seed give the same numbers, also across processes);
 wall-clock figures live in ``Execution.timings`` and must stay out of artifacts.
@@ -170,7 +202,7 @@ LOG_FIELDS = [
     *[Field("plan_" + c, "m" if c in "xyz" else "1", "W") for c in se3.POSE_COLUMNS],
     Field("com_error", "m"), Field("rot_error", "rad"), Field("tilt_error", "rad"),
     Field("pivot_x", "m", "W"), Field("pivot_y", "m", "W"), Field("pivot_z", "m", "W"),
-    Field("pivot_slip", "m"), Field("lowest_z", "m", "W"),
+    Field("pivot_slip", "m"), Field("support_rotation_slip", "rad"), Field("lowest_z", "m", "W"),
     Field("left_force", "N"), Field("right_force", "N"), Field("left_touch"), Field("right_touch"),
     Field("table_force", "N"),
     Field("left_ball_error", "m"), Field("right_ball_error", "m"), Field("joint_error", "rad"),
@@ -197,6 +229,8 @@ class Params:
     kq : null-space joint stiffness (N m/rad) towards the planned joints, damped mode by mode.
     kj, dj : joint tracking gains of free motion (1/s^2, 1/s: computed torque, 30 rad/s, damping 0.7).
     squeeze : depth (m) of the contact target inside the surface; ``kp * squeeze`` is the squeeze force.
+    squeeze_share : the squeeze is made shallower where the planned force plus ``kp * squeeze`` would
+        exceed this share of the force bound (:func:`_squeeze_depth`; the rest is the feedback's).
     ramp_time : time (s) over which a contact's squeeze and force feed-forward rise and fall.
     ball_orientation : "plan": the ball keeps the orientation of the planned joints and its target
         is corrected for rolling (module docstring); "object" (task "pose" only): the ball's
@@ -205,7 +239,17 @@ class Params:
         causes (off: the notes' (L + 2r) / L over-rotation returns, for measuring it).
     unwind_time : longest time (s) over which, after a contact ends, the rolling correction fades
         (and, with ``ball_orientation = "object"``, the orientation returns to the planned joints').
-    force_limit : bound (N) on the commanded Cartesian force at each ball.
+    force_limit : bound (N) on each ball's commanded Cartesian force, feed-forward included; 0: the
+        scene's ``robot.max_eef_force``, the bound the planner's stability check and the MPC put on
+        each ball (the arm's payload), so that execution does not push harder than the plan assumed.
+    force_margin : the commanded force is clipped at ``(1 - force_margin)`` times the bound: with
+        the command at the bound, the measured force (averaged over ``force_window``) overshoots it
+        by up to 5 % (51.5-52.6 N for 50 N on the reproduced runs; 50.5 N on Exp. 2 with a 5 % margin).
+    force_tolerance : the measured ball force (normal plus friction, on the object, averaged over
+        ``force_window``) may exceed the bound by this fraction before ``within_force_bound`` fails.
+    force_window : the measured ball force is judged averaged over this time (s): a wrist force
+        sensor's bandwidth (50 Hz); single solver steps spike (up to 64 N on Exp. 2, where the
+        20 ms average stays within 2 % of the bound). ``max_ball_force_step`` keeps the raw peak.
     clip_effort : clip joint torques to the URDF's ``effort`` limits.
     model_period : physics steps between refreshes of the arms' dynamics model: Jacobian, mass
         matrix, task inertia, task gains and null-space map (60 Hz by default; the arms turn
@@ -216,11 +260,28 @@ class Params:
     fall_distance : ... or when its CoM is off the table where the plan's is more than ``success_pos``
         inside its edge, or this far (m) from the plan's overhanging one (USP) or on the edge
         (:func:`off_the_table`).
-    success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``.
-    seed : seed of the perturbations (``randomize``).
-    randomize : perturb friction by +-friction_jitter (relative), the CoM by +-com_jitter (m per
-        axis), the principal inertias by +-inertia_jitter and the mass by +-mass_jitter (relative),
-        uniformly; the plan keeps the nominal values, as a robot does not know the true ones.
+    success_pos, success_yaw_deg : final CoM-projection (m) and yaw (deg) tolerances for ``success``,
+        measured ``settle_time`` after the release.
+    success_tilt_deg : final tilt tolerance (deg): the angle between the object's up axis and the
+        goal placement's (the right face down, flat on the table).
+    release : end the run as a robot would: when the plan ends with a ball on the object, the balls
+        let go (the squeeze and the feed-forward ramp out over ``ramp_time`` with the object still)
+        and back off ``retreat_distance`` (m) along the outward contact normal in ``retreat_time``
+        (s, joints by position IK); then the robot waits ``settle_time`` (s) so that the object's
+        rest can be judged (:func:`with_release`).
+    retreat_clearance : a ball has retreated when its surface is at least this far (m) from the
+        object at the end of the run.
+    rest_drift, rest_rotation_deg : the object is at rest when, from the release to the end of the
+        run (at least ``settle_time``), its CoM moved at most ``rest_drift`` (m) and it turned at most
+        ``rest_rotation_deg`` (deg), and its lowest point lies on the table (within 2 mm).
+    seed : 0 runs the nominal physics; N > 0 perturbs it, drawn from ``default_rng(N)``: friction by
+        +-friction_jitter (relative), the CoM by +-com_jitter (m per axis), the principal inertias by
+        +-inertia_jitter and the mass by +-mass_jitter (relative), the object's initial position by
+        +-pose_jitter (m along x and y), uniformly; the plan keeps the nominal values, as a robot does
+        not know the true ones. The seed also draws the perception noise (seed 0 included).
+    perception_noise, perception_noise_deg, perception_latency : the one input from outside the
+        robot (module docstring, Perception): the object's pose, measured with Gaussian noise of
+        this standard deviation per axis (m; deg about each axis) and this latency (s).
     cache_dir : folder of the convex-decomposition cache ("" = ``<system temp>/pivot-convex``).
     width, height, camera_* : rendered frames (pixels) and the fixed camera: target (m, W),
         distance (m), yaw and pitch (deg, PyBullet's convention).
@@ -236,12 +297,16 @@ class Params:
     kj: float = 900.0
     dj: float = 42.0
     squeeze: float = 0.005
+    squeeze_share: float = 0.9
     ramp_time: float = 0.3
     unwind_time: float = 2.0
     ball_orientation: str = "plan"
     task: str = "position"
     roll_compensation: bool = True
-    force_limit: float = 80.0
+    force_limit: float = 0.0
+    force_margin: float = 0.08
+    force_tolerance: float = 0.0
+    force_window: float = 0.02
     clip_effort: bool = True
     model_period: int = 4
     object_margin: float = 1e-4
@@ -249,12 +314,23 @@ class Params:
     fall_distance: float = 0.05
     success_pos: float = 0.01
     success_yaw_deg: float = 2.0
+    success_tilt_deg: float = 2.0
+    release: bool = True
+    retreat_distance: float = 0.03
+    retreat_time: float = 1.0
+    settle_time: float = 2.0
+    retreat_clearance: float = 0.01
+    rest_drift: float = 0.002
+    rest_rotation_deg: float = 0.5
     seed: int = 0
-    randomize: bool = False
     friction_jitter: float = 0.2
     com_jitter: float = 0.01
     inertia_jitter: float = 0.1
     mass_jitter: float = 0.15
+    pose_jitter: float = 0.003
+    perception_noise: float = 0.001
+    perception_noise_deg: float = 0.5
+    perception_latency: float = 0.1
     cache_dir: str = ""
     width: int = 480
     height: int = 360
@@ -571,6 +647,51 @@ def _vhacd_parts(mesh: trimesh.Trimesh) -> list[np.ndarray]:
 # Plan -> controller targets
 
 
+#: ``kind`` of the rows :func:`with_release` appends (the execution's own, never in a trajectory table).
+RELEASE = "release"
+
+
+def with_release(plan: Plan, mesh: trimesh.Trimesh, robot, params: Params) -> Plan:
+    """The plan followed by the robot letting go of the object and waiting (rows of kind ``"release"``).
+
+    When the plan's last row has a ball on the object: a pause of ``ramp_time`` with the contact flags
+    still on (the squeeze and the feed-forward ramp out, :func:`_contact_weights`, the object still),
+    then each touching ball backs off ``retreat_distance`` (m) along the outward normal at its
+    contact (minimum jerk, ``retreat_time`` s; the joints by :meth:`Robot.ik_trajectory` from the
+    last planned ones, so the joint tracking that takes over after the contact agrees with it; an arm
+    whose IK fails stays where it is, and the run then fails ``released``). Then ``settle_time`` s
+    more of the last state, over which the object's rest is judged. The planned object pose stays
+    the plan's last; the primitive id is the last plus one. Rows keep the plan's spacing.
+    """
+    dt_row = float(plan.t[1] - plan.t[0])
+    last = plan.contact[-1]
+    n_hold = int(math.ceil(params.ramp_time / dt_row)) + 1 if last.any() else 0
+    n_back = int(math.ceil(params.retreat_time / dt_row)) if last.any() else 0
+    n = n_hold + n_back + int(math.ceil(params.settle_time / dt_row)) + 1
+    p_ball, q = np.repeat(plan.p_ball[-1:], n, axis=0), np.repeat(plan.q[-1:], n, axis=0)
+    contact, f = np.zeros((n, 2), dtype=bool), np.zeros((n, 2, 3))
+    contact[:n_hold], f[:n_hold] = last, plan.f_ball[-1]
+    if n_back:
+        out = -_contact_normals(mesh, plan.X_WO[-1:], plan.p_ball[-1:], last[None])[0]  # (2, 3) outward
+        s = _min_jerk(np.arange(1, n_back + 1) / n_back)[:, None]
+        back = slice(n_hold, n_hold + n_back)
+        for a, arm in enumerate(("left", "right")):
+            if not last[a]:
+                continue
+            path = plan.p_ball[-1, a] + s * params.retreat_distance * out[a]  # (n_back, 3)
+            ik = robot.ik_trajectory(arm, path, plan.q[-1, a])
+            if ik.ok.all():
+                p_ball[back, a], q[back, a] = path, ik.q
+                p_ball[n_hold + n_back:, a], q[n_hold + n_back:, a] = path[-1], ik.q[-1]
+    return Plan(
+        t=np.concatenate([plan.t, plan.t[-1] + dt_row * np.arange(1, n + 1)]),
+        primitive=np.concatenate([plan.primitive, np.full(n, plan.primitive[-1] + 1)]),
+        kind=np.concatenate([plan.kind, np.full(n, RELEASE)]),
+        X_WO=np.concatenate([plan.X_WO, np.repeat(plan.X_WO[-1:], n, axis=0)]),
+        p_ball=np.concatenate([plan.p_ball, p_ball]), contact=np.concatenate([plan.contact, contact]),
+        f_ball=np.concatenate([plan.f_ball, f]), q=np.concatenate([plan.q, q]), substeps=plan.substeps)
+
+
 def _min_jerk(s):
     s = np.clip(s, 0.0, 1.0)
     return s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
@@ -691,6 +812,74 @@ def _support_vertices(plan: Plan, hull_O: np.ndarray, edge_tol: float = 2e-3) ->
     return vertex, start
 
 
+def _contact_force(c) -> tuple[float, float, float]:
+    """Force (N, W) of one ``getContactPoints`` row on body A: normal plus both friction components."""
+    n, d1, d2, fn, f1, f2 = c[7], c[11], c[13], c[9], c[10], c[12]
+    return (fn * n[0] + f1 * d1[0] + f2 * d2[0], fn * n[1] + f1 * d1[1] + f2 * d2[1],
+            fn * n[2] + f1 * d1[2] + f2 * d2[2])
+
+
+class _ForceMonitor:
+    """Each ball's force on the object at every physics step against the bound ``f_bound`` (N).
+
+    Records the raw peak (one step of the contact solver's impulses, spikes included), the peak of
+    the force averaged over ``window`` steps (what a wrist force sensor of that bandwidth reads, and
+    what the bound is judged on), the time (s) the averaged force exceeds the bound, and the steps
+    whose commanded force was clipped to it (the controller at its bound)."""
+
+    def __init__(self, f_bound: float, dt: float, window: int):
+        self.bound, self.dt = f_bound, dt
+        self.peak, self.peak_avg = [0.0, 0.0], [0.0, 0.0]
+        self.over_steps = [0, 0]
+        self.clipped_steps = [0, 0]
+        self.recent = [[0.0] * max(window, 1), [0.0] * max(window, 1)]
+        self.i = 0
+
+    def add(self, f: list[float]) -> None:
+        k = self.i % len(self.recent[0])
+        self.i += 1
+        for a in range(2):
+            self.recent[a][k] = f[a]
+            avg = sum(self.recent[a]) / len(self.recent[a])
+            self.peak[a] = max(self.peak[a], f[a])
+            self.peak_avg[a] = max(self.peak_avg[a], avg)
+            if avg > self.bound:
+                self.over_steps[a] += 1
+
+    def metrics(self, tolerance: float) -> dict:
+        return {"force_bound": self.bound, "max_ball_force": max(self.peak_avg),
+                "max_ball_force_step": max(self.peak),
+                "time_over_force_bound": self.dt * max(self.over_steps),
+                "time_at_force_bound": self.dt * max(self.clipped_steps),
+                "within_force_bound": bool(max(self.peak_avg) <= self.bound * (1.0 + tolerance))}
+
+
+class _Perception:
+    """The object's pose as the controller sees it: the simulated pose ``X_WO`` of ``latency`` s ago
+    plus Gaussian noise (position per axis, rotation vector per axis), drawn from a generator seeded
+    by ``(seed, 1)`` so that a run stays deterministic. Recorded every physics step, read only when a
+    lone hold begins (module docstring, Perception)."""
+
+    def __init__(self, S: int, X_PO: np.ndarray, params: Params):
+        self.pose = np.zeros((S, 7))
+        self.X_PO = X_PO
+        self.lag = int(round(params.perception_latency / params.dt))
+        self.sigma = (params.perception_noise, math.radians(params.perception_noise_deg))
+        self.rng = np.random.default_rng([params.seed, 1])
+
+    def record(self, j: int, obj: int, cid: int) -> None:
+        pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
+        self.pose[j, :3], self.pose[j, 3:] = pos, orn
+
+    def measure(self, j: int) -> np.ndarray:
+        """``X_WO (4, 4)`` as seen at step ``j``."""
+        x = self.pose[max(j - self.lag, 0)]
+        X = se3.make_transform(se3.matrix_from_quat(x[3:]), x[:3]) @ self.X_PO
+        noise = self.rng.normal(0.0, 1.0, 6)
+        R = Rotation.from_rotvec(self.sigma[1] * noise[3:]).as_matrix()
+        return se3.make_transform(R @ X[:3, :3], X[:3, 3] + self.sigma[0] * noise[:3])
+
+
 @dataclass(frozen=True, eq=False)
 class _Targets:
     """Controller targets at every physics step (index j = row * substeps + sub)."""
@@ -745,9 +934,19 @@ def _angular_velocity(R: np.ndarray, dt: float) -> np.ndarray:
     return w
 
 
-def _make_targets(plan: Plan, R_plan: np.ndarray, normals: np.ndarray, params: Params) -> _Targets:
+def _squeeze_depth(f_ball: np.ndarray, f_bound: float, params: Params) -> np.ndarray:
+    """``(T, 2)`` depth (m) of each ball's squeeze target: ``params.squeeze``, less where the planned
+    force ``f_ball (T, 2, 3)`` (N) and the squeeze's ``kp * depth`` would exceed ``squeeze_share`` of
+    the force bound ``f_bound`` (N): the plan's forces already hold the object within its friction
+    cones, the squeeze is a margin on top, and it must not take the ball past what the arm may push."""
+    room = params.squeeze_share * f_bound - np.linalg.norm(f_ball, axis=2)
+    return np.clip(room / params.kp, 0.0, params.squeeze)
+
+
+def _make_targets(plan: Plan, R_plan: np.ndarray, normals: np.ndarray, params: Params, f_bound: float) -> _Targets:
     weight = _contact_weights(plan.t, plan.contact, params.ramp_time)
-    x_row = plan.p_ball + (_squeeze_weights(weight, normals) * params.squeeze)[..., None] * normals
+    depth = _squeeze_depth(plan.f_ball, f_bound, params)
+    x_row = plan.p_ball + (_squeeze_weights(weight, normals) * depth)[..., None] * normals
     f_row = weight[..., None] * plan.f_ball
     if params.ball_orientation == "object":
         R_row = _rotation_targets(plan.t, plan.X_WO, R_plan, plan.contact, params.unwind_time)
@@ -922,15 +1121,22 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     plan stops short of the goal); ``max_com_deviation`` (m) and ``max_rotation_deviation_deg``
     from the planned object path; ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
     the support edge over tumble rows);
-    ``max_penetration`` (m); ``max_ball_force`` (N); ``max_joint_error`` (rad); ``fell`` and
-    ``fell_reason``; ``robot_table_contacts``, ``robot_obstacle_contacts``, ``robot_object_contacts``
-    (links other than the balls), ``object_obstacle_contacts`` (sorted names); ``collision``;
-    ``collision_times`` (``"<kind>:<name>"`` -> time in s of that pair's first contact, to find it in
-    the log); ``torque_saturation`` (fraction of steps with a clipped joint torque); ``success``;
-    ``convex_parts``; ``collision_shape`` (``triangles`` of the mesh the hulls come from, the planning
-    mesh's ``mesh_triangles``, and the simplification's error bound ``tolerance`` in m, 0 when the
-    planning mesh itself: :func:`stages.simplify.collision_mesh`); ``perturbation`` (what
-    ``randomize`` drew); ``steps``, ``duration`` (s).
+    the support's slip per stretch and the worst (:func:`_slip_metrics`);
+    ``max_penetration`` (m); the force bound's figures (``force_bound``, ``max_ball_force`` averaged
+    over ``force_window``, ``max_ball_force_step``, ``time_over_force_bound``, ``time_at_force_bound``
+    (s, commanded force clipped), ``within_force_bound``; :class:`_ForceMonitor`) and
+    ``max_planned_ball_force`` (N, the plan's largest force magnitude); ``max_joint_error`` (rad);
+    ``fell`` and ``fell_reason``; ``robot_table_contacts``, ``robot_obstacle_contacts``,
+    ``robot_object_contacts`` (links other than the balls), ``object_obstacle_contacts`` (sorted
+    names); ``collision``; ``collision_times`` (``"<kind>:<name>"`` -> time in s of that pair's first
+    contact, to find it in the log); ``torque_saturation`` (fraction of steps with a clipped joint
+    torque); the release's figures (:func:`_release_metrics`); ``position_ok``, ``yaw_ok``;
+    ``failures`` (codes of :data:`FAILURES`) and ``success`` (none); ``planned_rows`` (rows of the
+    plan before the release); ``convex_parts``; ``collision_shape`` (``triangles`` of the mesh the
+    hulls come from, the planning mesh's ``mesh_triangles``, and the simplification's error bound
+    ``tolerance`` in m, 0 when the planning mesh itself: :func:`stages.simplify.collision_mesh`);
+    ``perturbation`` (what a seed N > 0 drew); ``steps``,
+    ``duration`` (s).
     """
     wall0 = time.perf_counter()
     com_O = np.asarray(com_O, dtype=float).reshape(3)
@@ -946,10 +1152,16 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             or (params.ball_orientation == "object" and params.task != "pose") or not params.dt > 0 or frames < 0:
         raise InputError(f"simulate: invalid parameters (ball_orientation {params.ball_orientation!r} needs task "
                          f"'pose', task {params.task!r}, dt {params.dt}, frames {frames})")
+    if params.seed < 0:
+        raise InputError(f"simulate: seed must be >= 0 (0: the nominal physics), got {params.seed}")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     arms = (robot.arm("left"), robot.arm("right"))
     plan = check_trajectory(traj, params.dt, arms[0].dof)
     mesh = load_mesh(mesh_path)
+    n_planned = len(plan.t)
+    if params.release:
+        plan = with_release(plan, mesh, robot, params)
+    f_bound = params.force_limit if params.force_limit > 0 else float(scene.robot.max_eef_force)
     t_dec = time.perf_counter()
     shape = collision_mesh(mesh)
     parts, parts_path, cache_hit = convex_parts(shape.mesh, params.cache_dir)
@@ -961,7 +1173,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     com_true = com_O.copy()
     X_OP, lam = _principal_frame(com_O, inertia_O)
     perturbation: dict = {}
-    if params.randomize:
+    d_pose = np.zeros(3)
+    if params.seed > 0:
         f_mu = rng.uniform(1 - params.friction_jitter, 1 + params.friction_jitter)
         d_com = rng.uniform(-params.com_jitter, params.com_jitter, 3)
         f_lam = rng.uniform(1 - params.inertia_jitter, 1 + params.inertia_jitter, 3)
@@ -972,14 +1185,16 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         lam = lam * f_lam * f_m  # the inertia scales with the mass (same shape, uniform density)
         mass = mass * f_m
         X_OP = se3.make_transform(X_OP[:3, :3], com_true)
+        d_pose[:2] = rng.uniform(-params.pose_jitter, params.pose_jitter, 2)
         perturbation = {"friction_factor": float(f_mu), "com_offset": d_com.tolist(),
-                        "inertia_factors": f_lam.tolist(), "mass_factor": float(f_m)}
+                        "inertia_factors": f_lam.tolist(), "mass_factor": float(f_m),
+                        "initial_offset": d_pose[:2].tolist()}
     X_PO = se3.invert(X_OP)
 
     # Targets from the plan.
     R_plan = np.stack([robot.fk(a.name, plan.q[:, i])[:, a.eef_index, :3, :3] for i, a in enumerate(arms)], axis=1)
     normals = _contact_normals(mesh, plan.X_WO, plan.p_ball, plan.contact)
-    tg = _make_targets(plan, R_plan, normals, params)
+    tg = _make_targets(plan, R_plan, normals, params, f_bound)
     hull_O = np.asarray(mesh.convex_hull.vertices)
     sup_vertex, sup_start = _support_vertices(plan, hull_O)
 
@@ -1054,6 +1269,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                                       visualFramePosition=X_PO[:3, 3].tolist(),
                                       visualFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
         X_WP0 = plan.X_WO[0] @ X_OP
+        X_WP0[:3, 3] += d_pose
         obj = p.createMultiBody(mass, col, vis, basePosition=X_WP0[:3, 3].tolist(),
                                 baseOrientation=_quat(X_WP0[:3, :3]), physicsClientId=cid)
         p.changeDynamics(obj, -1, mass=mass, localInertiaDiagonal=lam.tolist(), lateralFriction=mu,
@@ -1074,14 +1290,16 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
             raw["pos_P"][r], raw["quat_P"][r] = pos, orn
             f_table, pen = 0.0, 0.0
+            f_vec = np.zeros((2, 3))
             for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
                 pen = max(pen, -c[8])
                 if c[2] == body and c[4] in balls:
                     a = balls.index(c[4])
-                    raw["f_ball"][r, a] += c[9]
+                    f_vec[a] += _contact_force(c)
                     raw["touch"][r, a] = True
                 elif c[2] == table:
                     f_table += c[9]
+            raw["f_ball"][r] = np.linalg.norm(f_vec, axis=1)
             raw["f_table"][r], raw["pen"][r] = f_table, pen
             ls = p.getLinkStates(body, balls, computeForwardKinematics=1, physicsClientId=cid)
             raw["ball"][r] = [ls[0][4], ls[1][4]]
@@ -1090,17 +1308,22 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             if r in frame_rows:
                 images.append(_render(cid, params))
 
-        def check_collisions(t_now: float) -> None:
+        def check_collisions(t_now: float) -> list[float]:
+            """Record the collisions of this step; returns each ball's force on the object (N)."""
             def hit(kind: str, name: str) -> None:
                 if name not in collisions[kind]:
                     collisions[kind].add(name)
                     first_hit.setdefault(f"{kind}:{name}", t_now)
 
+            f_vec = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
             for c in p.getContactPoints(bodyA=body, physicsClientId=cid):
                 other = c[2]
                 if other == obj:
                     if c[3] not in balls:
                         hit("robot_object", link_name.get(c[3], str(c[3])))
+                    else:
+                        fa, fc = f_vec[balls.index(c[3])], _contact_force(c)
+                        fa[0], fa[1], fa[2] = fa[0] + fc[0], fa[1] + fc[1], fa[2] + fc[2]
                 elif other == table:
                     hit("robot_table", link_name.get(c[3], str(c[3])))
                 elif other in obstacles:
@@ -1109,6 +1332,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                 for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
                     if c[2] in obstacles:
                         hit("object_obstacle", obstacles[c[2]])
+            return [math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) for f in f_vec]
 
         t_loop, c_loop = time.perf_counter(), time.process_time()
         states = p.getJointStates(body, movable, physicsClientId=cid)
@@ -1122,6 +1346,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         compliance_s = tg.compliance.tolist()
         follow_s = tg.follow.tolist()
         drift: list = [None, None]  # per ball: the object's drift from the plan when its lone hold began
+        f_command = (1.0 - params.force_margin) * f_bound
+        force = _ForceMonitor(f_bound, dt, int(round(params.force_window / dt)))
+        seen = _Perception(S, X_PO, params)
+        seen.record(0, obj, cid)
         eye_n = np.eye(n_arm)
         for j in range(1, S):
             # Torques for the step from j - 1 to j, from the state at j - 1 and the targets at j.
@@ -1159,9 +1387,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                 if follow_s[j][a] <= 0.0:
                     drift[a] = None
                     continue
-                if drift[a] is None:  # a lone hold begins: where the object is, against the plan
-                    pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
-                    X_act = se3.make_transform(se3.matrix_from_quat(np.asarray(orn)), np.asarray(pos)) @ X_PO
+                if drift[a] is None:  # a lone hold begins: where the object is seen, against the plan
+                    X_act = seen.measure(j - 1)
                     R_d = X_act[:3, :3] @ tg.R_o[j].T
                     drift[a] = (R_d, X_act[:3, 3] - R_d @ tg.p_o[j])
                 R_d, p_d = drift[a]
@@ -1196,8 +1423,9 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             for a in range(2):
                 fx, fy, fz = W[a, :3].tolist()
                 nF = math.sqrt(fx * fx + fy * fy + fz * fz)
-                if nF > params.force_limit:
-                    W[a, :3] *= params.force_limit / nF
+                if nF > f_command:
+                    W[a, :3] *= f_command / nF
+                    force.clipped_steps[a] += 1
             # The posture in the null space: N (Kq e_q + Dq e_q').
             e_q, e_qd = tg.q[j] - q[cols2], tg.qd[j] - qd[cols2]
             h = h_all[cols2]
@@ -1222,15 +1450,25 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             p.setJointMotorControlArray(body, all_arm, p.TORQUE_CONTROL, forces=tau.ravel().tolist(),
                                         physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
-            check_collisions(float(plan.t[0]) + j * dt)
+            force.add(check_collisions(float(plan.t[0]) + j * dt))
+            seen.record(j, obj, cid)
             states = p.getJointStates(body, movable, physicsClientId=cid)
             if j % k == 0:
                 raw["sat"][j // k] = saturated
                 sample(j // k, states)
         t_loop, c_loop = time.perf_counter() - t_loop, time.process_time() - c_loop
+        clearance = [min([c[8] for c in p.getClosestPoints(body, obj, 1.0, linkIndexA=b, physicsClientId=cid)],
+                         default=1.0) for b in balls]
 
     log = _make_log(plan, raw, X_PO, com_O, hull_O, sup_vertex, sup_start)
     metrics = _metrics(plan, log, X_WO_goal, com_O, scene, params, collisions)
+    metrics.update(force.metrics(params.force_tolerance))
+    metrics["max_planned_ball_force"] = float(np.linalg.norm(plan.f_ball, axis=2).max())
+    metrics.update(_release_metrics(log, com_O, X_WO_goal, clearance, params))
+    metrics.update(_slip_metrics(log))
+    metrics["failures"] = _failures(metrics)
+    metrics["success"] = not metrics["failures"]
+    metrics["planned_rows"] = n_planned
     metrics["collision_times"] = {k: round(v, 6) for k, v in sorted(first_hit.items())}
     metrics.update({
         "torque_saturation": saturated_steps / max(S - 1, 1),
@@ -1269,6 +1507,11 @@ def _make_log(plan: Plan, raw: dict, X_PO, com_O, hull_O, sup_vertex, sup_start)
     slip = [np.linalg.norm(H[rows, sup_vertex[:, i], :2] - H[sup_start, sup_vertex[:, i], :2], axis=1)
             for i in range(2)]
     log["pivot_slip"] = np.maximum(*slip)
+    # The rotation the object made since its stretch began that the plan did not: 0 for a pivot
+    # that turns as planned, the whole turn for a hold that should not turn at all.
+    R_act = X[:, :3, :3] @ np.swapaxes(X[sup_start, :3, :3], 1, 2)
+    R_pln = Xp[:, :3, :3] @ np.swapaxes(Xp[sup_start, :3, :3], 1, 2)
+    log["support_rotation_slip"] = Rotation.from_matrix(R_act @ np.swapaxes(R_pln, 1, 2)).magnitude()
     log["lowest_z"] = H[:, :, 2].min(axis=1)
     log["left_force"], log["right_force"] = raw["f_ball"][:, 0].copy(), raw["f_ball"][:, 1].copy()
     log["left_touch"], log["right_touch"] = raw["touch"][:, 0].copy(), raw["touch"][:, 1].copy()
@@ -1346,10 +1589,81 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
     }
     out["collision"] = bool(out["robot_table_contacts"] or out["robot_obstacle_contacts"]
                             or out["robot_object_contacts"] or out["object_obstacle_contacts"])
-    out["success"] = bool(out["final_position_error"] <= params.success_pos
-                          and out["final_yaw_error_deg"] <= params.success_yaw_deg
-                          and not out["fell"] and not out["collision"])
+    out["position_ok"] = bool(out["final_position_error"] <= params.success_pos)
+    out["yaw_ok"] = bool(out["final_yaw_error_deg"] <= params.success_yaw_deg)
     return out
+
+
+#: Failure codes of an execution, in the order :func:`_failures` lists them (the first is the headline).
+FAILURES = ("fell", "collision", "over_force_bound", "not_released", "not_retreated", "tilted", "not_at_rest",
+            "missed_position", "missed_yaw")
+
+
+def _failures(m: dict) -> list[str]:
+    """The criteria an execution's metrics ``m`` fail, as codes of :data:`FAILURES` (empty: success)."""
+    failed = {"fell": m["fell"], "collision": m["collision"], "over_force_bound": not m["within_force_bound"],
+              "not_released": not m["released"], "not_retreated": not m["retreated"], "tilted": not m["tilt_ok"],
+              "not_at_rest": not m["at_rest"], "missed_position": not m["position_ok"], "missed_yaw": not m["yaw_ok"]}
+    return [k for k in FAILURES if failed[k]]
+
+
+def _release_metrics(log: dict, com_O, X_WO_goal, clearance: list[float], params: Params) -> dict:
+    """Whether the robot let go and the object stayed put, from the log's last rows.
+
+    ``released``: no ball touches the object at the last row; ``release_time`` (s): the first row
+    after the last one where a ball touched; ``final_ball_clearance`` (m, left and right: the ball
+    surface's distance to the object at the end) and ``retreated`` (both at least
+    ``retreat_clearance``); ``rest_duration`` (s, from the release to the end); over the last
+    ``settle_time`` s of the run (from the release at the earliest) ``rest_drift`` (m, the CoM's
+    largest displacement) and ``rest_rotation_deg`` (its largest rotation); ``at_rest``: released at
+    least ``settle_time`` before the end, still over that window within ``rest_drift`` and
+    ``rest_rotation_deg``, the lowest point on the table (within 2 mm): the object came to rest after
+    the release and stayed so (a placement that ends with a short drop, as a tumble's slide, settles
+    first); ``final_tilt_error_deg``: the angle between the object's up axis and the goal's (W z seen
+    in O), and ``tilt_ok``.
+    """
+    X = se3.matrix_from_columns({c: log[c] for c in se3.POSE_COLUMNS})
+    touch = np.asarray(log["left_touch"], dtype=bool) | np.asarray(log["right_touch"], dtype=bool)
+    hits = np.flatnonzero(touch)
+    r0 = int(hits[-1]) + 1 if len(hits) else 0
+    released = r0 < len(X)
+    r0 = min(r0, len(X) - 1)
+    t = np.asarray(log["t"], dtype=float)
+    w0 = max(r0, int(np.searchsorted(t, t[-1] - params.settle_time - 1e-9)))
+    com = se3.transform_points(X[w0:], com_O)
+    turn = Rotation.from_matrix(X[w0:, :3, :3] @ X[w0, :3, :3].T).magnitude()
+    duration = float(t[-1] - t[r0]) if released else 0.0
+    drift = float(np.linalg.norm(com - com[0], axis=1).max())
+    rot = float(np.degrees(turn.max()))
+    on_table = abs(float(log["lowest_z"][-1])) <= 0.002
+    tilt = math.degrees(math.acos(float(np.clip(X[-1, 2, :3] @ X_WO_goal[2, :3], -1.0, 1.0))))
+    return {"released": bool(released), "release_time": float(log["t"][r0]) if released else None,
+            "final_ball_clearance": [float(c) for c in clearance],
+            "retreated": bool(min(clearance) >= params.retreat_clearance),
+            "rest_duration": duration, "rest_drift": drift, "rest_rotation_deg": rot,
+            "at_rest": bool(released and duration >= params.settle_time - 1e-9 and drift <= params.rest_drift
+                            and rot <= params.rest_rotation_deg and on_table),
+            "final_tilt_error_deg": tilt, "tilt_ok": bool(tilt <= params.success_tilt_deg)}
+
+
+def _slip_metrics(log: dict) -> dict:
+    """Slip of the support per stretch (primitive and kind): ``slip`` lists ``primitive``, ``kind``,
+    ``translation`` (m, the largest ``pivot_slip``) and ``rotation_deg`` (the largest
+    ``support_rotation_slip``); ``max_support_slip`` (m) and ``max_support_rotation_slip_deg`` are
+    the worst over all stretches, with the stretch (``worst_slip_primitive``,
+    ``worst_rotation_slip_primitive``)."""
+    prim, kind = np.asarray(log["primitive"]), np.asarray(log["kind"]).astype(str)
+    change = np.flatnonzero(np.concatenate([[True], (prim[1:] != prim[:-1]) | (kind[1:] != kind[:-1])]))
+    ends = np.concatenate([change[1:], [len(prim)]])
+    rows = [{"primitive": int(prim[s]), "kind": str(kind[s]),
+             "translation": float(np.max(log["pivot_slip"][s:e])),
+             "rotation_deg": float(np.degrees(np.max(log["support_rotation_slip"][s:e])))}
+            for s, e in zip(change.tolist(), ends.tolist(), strict=True)]
+    i = int(np.argmax([r["translation"] for r in rows]))
+    k = int(np.argmax([r["rotation_deg"] for r in rows]))
+    return {"slip": rows, "max_support_slip": rows[i]["translation"], "worst_slip_primitive": rows[i]["primitive"],
+            "max_support_rotation_slip_deg": rows[k]["rotation_deg"],
+            "worst_rotation_slip_primitive": rows[k]["primitive"]}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -1403,3 +1717,38 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     elif frames_path.exists():
         frames_path.unlink()
     return ex
+
+
+def run_seeds(scene_path, analysis_dir, trajectories_path, out_dir, params: Params, seeds: int,
+              producer: str = "execute", required_share: float = 0.9) -> dict:
+    """``pivot execute --seeds K``: robustness as a distribution (issue 15).
+
+    Runs :func:`run` with seeds ``1..seeds`` (each perturbed, see :class:`Params`; everything else as
+    ``params``) into ``<out_dir>/seeds/seed<k>/`` and writes ``<out_dir>/robustness.json``: ``seeds``,
+    ``succeeded``, ``required`` (``ceil(required_share * seeds)``: 9 of 10), ``failures`` (code ->
+    number of seeds failing it) and per seed ``runs``: ``seed``, ``success``, ``failures``,
+    ``final_position_error`` (m), ``final_yaw_error_deg``, ``final_tilt_error_deg``, ``max_ball_force``
+    (N), ``max_support_slip`` (m), ``max_support_rotation_slip_deg`` and ``perturbation``. Returns it.
+    """
+    from dataclasses import replace
+
+    out = Path(out_dir)
+    runs = []
+    for k in range(1, seeds + 1):
+        m = run(scene_path, analysis_dir, trajectories_path, out / "seeds" / f"seed{k}", replace(params, seed=k),
+                frames=0, producer=f"{producer} --seed {k}").metrics
+        runs.append({"seed": k, **{key: m[key] for key in (
+            "success", "failures", "final_position_error", "final_yaw_error_deg", "final_tilt_error_deg",
+            "max_ball_force", "max_support_slip", "max_support_rotation_slip_deg", "perturbation")}})
+    counts: dict[str, int] = {}
+    for r in runs:
+        for f in r["failures"]:
+            counts[f] = counts.get(f, 0) + 1
+    summary = {"seeds": seeds, "succeeded": sum(r["success"] for r in runs),
+               "required": math.ceil(required_share * seeds - 1e-9), "failures": counts, "runs": runs}
+    inputs = {"scene": scene_path, "analysis": Path(analysis_dir) / "analysis.json",
+              "trajectories": trajectories_path}
+    artifacts.write_json(out / "robustness.json", summary,
+                         artifacts.make_meta("robustness", {**asdict(params), "seeds": seeds}, inputs, producer))
+    return summary
+

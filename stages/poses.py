@@ -13,12 +13,14 @@ Only placements that are SP on their own are sampled. The object touches the tab
 lies in the support plane, clipped to the table top (:func:`table_support`: the soles of a piano's
 feet, not the face between them; near the table's edge the edge cuts them). A new pose is SP when
 the CoM's vertical projection lies inside that polygon by
-``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at most
-``max_usp_overhang``, over the table's edge: the object would tip off the table unless one ball holds
-it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). It is rejected as
-``off_table`` (not SP and less than ``min_usp_edge`` of contact with the table, or too much overhang),
-``unstable`` (USP not allowed) or ``obstacle`` (the object mesh, at the pose or swept by the pivot or
-tumble that reaches it, hits an obstacle, python-fcl). Poses closer than ``merge_xy`` and
+``sp_margin``; with USP allowed it is USP when the CoM lies beyond it, by at least ``usp_margin`` and
+at most ``max_usp_overhang``, over the table's edge: the object would tip off the table unless one
+ball holds it (§5.1, Fig. 14, 18; the grasp stage decides with the stability test). Between the two
+margins a pose is neither: whether it stands alone is a matter of millimetres the robot does not
+know. It is rejected as ``off_table`` (not SP and less than ``min_usp_edge`` of contact with the table,
+or too much overhang), ``unstable`` (USP not allowed, or the CoM between the margins) or ``obstacle``
+(the object mesh, at the pose or swept by the pivot or tumble that reaches it, hits an obstacle,
+python-fcl). Poses closer than ``merge_xy`` and
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
 to rounding (e.g. +θ then −θ about one vertex), so that every link is an exact pivot or tumble.
 Every pivot or tumble between two kept poses is a link.
@@ -84,6 +86,13 @@ class Params:
     #: its CoM lies at most this far beyond that contact (m), where one ball holds it.
     min_usp_edge: float = 0.05
     max_usp_overhang: float = 0.15
+    #: USP: the CoM lies at least this far (m) beyond the contact. What the plan knows of the CoM is
+    #: off by up to ~1.5 cm in execution: the object's CoM up to 1 cm per axis (``pivot execute
+    #: --seed``'s perturbation, a mass model's honest error), its position 2-3 mm from the plan after a
+    #: tumble and a few mm more per hand-over (measured on Exp. 3); a pose nearer the edge than that
+    #: may stand alone or tip either way, so the plan could rely on a hold the object does not need or
+    #: leave it where it tips. 2 cm clears that error (about 5 % of the piano's 0.43 m).
+    usp_margin: float = 0.02
     #: Expansions a placement other than the start's and the goal's gets per one of theirs.
     other_share: float = 0.1
     #: How far from coplanar the hull triangles of one placement face may be (rad): the analysis'
@@ -323,6 +332,10 @@ def classify_pose(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, c
         where = f"{-margin:.3f} m beyond" if margin < 0 else f"only {margin:.3f} m inside"
         return "unstable", "USP", margin, (f"its CoM is {where} its contact with the table (SP needs "
                                            f"{params.sp_margin:g} m inside) and the planner does not allow USP")
+    elif -margin < params.usp_margin:
+        return "unstable", "USP", margin, (f"its CoM is {-margin:.4f} m beyond its contact with the table, between "
+                                           f"SP ({params.sp_margin:g} m inside) and USP ({params.usp_margin:g} m "
+                                           f"beyond): it may stand or tip")
     elif -margin > params.max_usp_overhang:
         return "off_table", "USP", margin, (f"its CoM is {-margin:.3f} m beyond its contact with the table's edge "
                                             f"(a USP pose allows {params.max_usp_overhang:g} m)")

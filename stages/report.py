@@ -28,6 +28,13 @@ PAPER = {
                      "the other ball alone holds the piano) and a pivot back into SP",
     "default": "Simulation (§6.2, Fig. 15): move the piano forward",
 }
+#: What was calibrated to reach a paper figure: scene -> (the scene before, what changed).
+CALIBRATED = {
+    "exp1_reach": ("exp1_reach_first", "the robot's base moved 4 cm back (x -0.70 -> -0.74 m) and the goal's CoM "
+                   "from (0.38, 0.00) to (0.27, -0.025) m until the one-grasp gait stopped short along x as in "
+                   "Table 2; at the first geometry (`exp1_reach_first`) the first grasp reached far enough that "
+                   "no goal on the table needed a regrasp by reach"),
+}
 
 
 def _read(path: Path) -> dict | None:
@@ -55,6 +62,24 @@ def _plan_margins(build: Path, plan: dict) -> list[float]:
         if g is not None and 0 <= g < len(gr):
             out.append(float(gr["margin"][g]))
     return out
+
+
+def _robustness(d: Path, ex: dict | None) -> dict | None:
+    """``robustness.json`` of the variant folder ``d`` (``pivot execute --seeds K``) when made from the same
+    trajectories as its current execution ``ex``."""
+    rb = _read(d / "robustness.json")
+    if rb is None or ex is None:
+        return None
+    same = rb.get("meta", {}).get("inputs", {}).get("trajectories") == ex.get("meta", {}).get("inputs", {}).get(
+        "trajectories")
+    return rb if same else None
+
+
+def _seeds_cell(rb: dict | None) -> str:
+    if rb is None:
+        return "–"
+    fails = ", ".join(f"{k} {n}" for k, n in sorted(rb.get("failures", {}).items()))
+    return f"{rb['succeeded']} of {rb['seeds']}" + (f" ({fails})" if fails else "")
 
 
 def _current(d: Path, full: Path) -> tuple[dict | None, dict | None]:
@@ -91,9 +116,58 @@ def collect(build_root: str | Path, scenes: list[str]) -> list[dict]:
                 "timings": {**timings, "plan": (_read(b / v / "plan.json.timings.json") or {}).get("plan"),
                             "mpc": (_read(b / v / "trajectories.json.timings.json") or {}).get("mpc"),
                             "execute": (_read(b / v / "execution.json.timings.json") or {}).get("wall")},
-                "margins": _plan_margins(b, plan),
+                "margins": _plan_margins(b, plan), "robustness": _robustness(b / v, ex),
             })
     return rows
+
+
+def _physics_lines(e: dict, rb: dict | None) -> list[str]:
+    """The scene section's physics lines: the nominal run's criteria, force, slip, and the seeds."""
+    err = 100 * e.get("final_position_error", 0)
+    out = [f"- physics (nominal): success {e.get('success')}"
+           f"{' (failed: ' + ', '.join(e.get('failures', [])) + ')' if e.get('failures') else ''}, final error "
+           f"{err:.2f} cm / {e.get('final_yaw_error_deg', 0):.2f}° / tilt "
+           f"{_fmt(e.get('final_tilt_error_deg'), '.2f')}°, {_fmt(e.get('rest_duration'), '.1f')} s after the "
+           f"release (released {_fmt(e.get('released'))}, "
+           f"retreated {_fmt(e.get('retreated'))}, at rest {_fmt(e.get('at_rest'))}), max deviation from the "
+           f"planned path {100 * e.get('max_com_deviation', 0):.2f} cm, fell {e.get('fell')}",
+           f"- ball force: peak {_fmt(e.get('max_ball_force'), '.1f')} N (20 ms average; one solver step "
+           f"{_fmt(e.get('max_ball_force_step'), '.1f')} N) against the scene's bound "
+           f"{_fmt(e.get('force_bound'), '.0f')} N, above it {_fmt(e.get('time_over_force_bound'), '.2f')} s, "
+           f"commanded at its limit {_fmt(e.get('time_at_force_bound'), '.1f')} s; planned peak "
+           f"{_fmt(e.get('max_planned_ball_force'), '.1f')} N",
+           f"- support slip, worst: {_fmt(e.get('max_support_slip', None) and 1000 * e['max_support_slip'], '.1f')}"
+           f" mm (primitive {_fmt(e.get('worst_slip_primitive'), 'd')}), "
+           f"{_fmt(e.get('max_support_rotation_slip_deg'), '.2f')}° of rotation (primitive "
+           f"{_fmt(e.get('worst_rotation_slip_primitive'), 'd')}); per primitive: " + ", ".join(
+               f"{s['primitive']} {s['kind']} {1000 * s['translation']:.1f} mm / {s['rotation_deg']:.2f}°"
+               for s in e.get("slip", []))]
+    if rb is not None:
+        q = {k: rb.get("meta", {}).get("params", {}).get(k, float("nan"))
+             for k in ("friction_jitter", "mass_jitter", "com_jitter", "pose_jitter")}
+        out.append(f"- robustness: {_seeds_cell(rb)} perturbed seeds succeed (friction ±"
+                   f"{100 * q['friction_jitter']:.0f} %, mass ±{100 * q['mass_jitter']:.0f} %, CoM "
+                   f"±{100 * q['com_jitter']:.1f} cm per axis, initial position ±{1000 * q['pose_jitter']:.0f} mm; "
+                   f"{rb['required']} needed)")
+    return out
+
+
+def _calibration_lines(root: Path, scene: str) -> list[str]:
+    """What was calibrated to reach the scene's paper figure (:data:`CALIBRATED`), with the one-grasp
+    gait's planned stop at the geometry before (``pivot plan --no-regrasp`` of that scene, when built)."""
+    if scene not in CALIBRATED:
+        return []
+    before, what = CALIBRATED[scene]
+    plan = _read(root / before / "no-regrasp" / "plan.json")
+    if plan is None:
+        figure = f"not built here (`make SCENE={before} VARIANT=no-regrasp plan`)"
+    elif plan.get("status") == "infeasible":
+        figure = f"no plan ({plan.get('reason', '')})"
+    else:
+        e = plan.get("remaining_error", {"x": 0.0, "y": 0.0, "distance": 0.0})
+        figure = (f"{100 * e['x']:+.1f} cm along x, {100 * e['y']:+.1f} cm along y ({100 * e['distance']:.1f} cm "
+                  f"from its goal; plan {plan.get('status')})")
+    return [f"Calibrated: {what}. The one-grasp gait's stop at the first geometry: {figure}."]
 
 
 def write_report(build_root: str | Path, out: str | Path, scenes: list[str]) -> str:
@@ -107,19 +181,24 @@ def write_report(build_root: str | Path, out: str | Path, scenes: list[str]) -> 
              "columns from `pivot execute` (PyBullet; the object moves only through its contacts).", ""]
     lines += ["## All runs", "",
               "| scene | variant | plan | pivots | tumbles | regrasps | USP steps | removed edges | physics "
-              "success | final error (cm / deg) | max pivot slip (mm) | collision |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "success | failed criteria | final error (cm / deg / tilt deg) | peak ball force (N, bound) | "
+              "worst support slip (mm / deg) | collision | perturbed seeds that succeed |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, e = r["plan"], r["execution"] or {}
         c = p.get("counts", {})
         usp = sum(1 for s in p.get("steps", []) if s.get("support") == "USP")
         err = (f"{_fmt(e.get('final_position_error', None) and 100 * e['final_position_error'], '.2f')} / "
-               f"{_fmt(e.get('final_yaw_error_deg'), '.2f')}") if e else "–"
+               f"{_fmt(e.get('final_yaw_error_deg'), '.2f')} / {_fmt(e.get('final_tilt_error_deg'), '.2f')}") \
+            if e else "–"
+        force = f"{_fmt(e.get('max_ball_force'), '.1f')} ({_fmt(e.get('force_bound'), '.0f')})" if e else "–"
+        slip = (f"{_fmt(e.get('max_support_slip', None) and 1000 * e['max_support_slip'], '.1f')} / "
+                f"{_fmt(e.get('max_support_rotation_slip_deg'), '.2f')}") if e else "–"
+        failed = ", ".join(e.get("failures", [])) or "none" if e else "–"
         lines.append(f"| {r['scene']} | {r['variant']} | {p['status']} | {c.get('pivot', '–')} | "
                      f"{c.get('tumble', '–')} | {c.get('regrasp', '–')} | {usp} | {len(p.get('log', []))} | "
-                     f"{_fmt(e.get('success'))} | {err} | "
-                     f"{_fmt(e.get('max_pivot_slip', None) and 1000 * e['max_pivot_slip'], '.1f')} | "
-                     f"{_fmt(e.get('collision'))} |")
+                     f"{_fmt(e.get('success'))} | {failed} | {err} | {force} | {slip} | "
+                     f"{_fmt(e.get('collision'))} | {_seeds_cell(r['robustness'])} |")
     lines.append("")
 
     by = {(r["scene"], r["variant"]): r for r in rows}
@@ -137,7 +216,7 @@ def write_report(build_root: str | Path, out: str | Path, scenes: list[str]) -> 
         phys = e.get("final_com_error_x")
         lines.append(f"| {label} | {regrasp} | {_fmt(planned and 100 * planned, '+.1f')} cm | "
                      f"{_fmt(phys and 100 * phys, '+.1f')} cm | {paper} |")
-    lines.append("")
+    lines += ["", *_calibration_lines(Path(build_root), "exp1_reach"), ""]
     for scene in scenes:
         r = by.get((scene, "full"))
         if r is None:
@@ -163,11 +242,7 @@ def write_report(build_root: str | Path, out: str | Path, scenes: list[str]) -> 
             lines.append(f"- stability margins of the grasps along the plan (N, L1 wrench margin): min {m.min():.2f}, "
                          f"median {np.median(m):.2f}, max {m.max():.2f}")
         if e:
-            err = 100 * e.get("final_position_error", 0)
-            lines.append(f"- physics: success {e.get('success')}, final error {err:.2f}"
-                         f" cm / {e.get('final_yaw_error_deg', 0):.2f}°, max deviation from the planned path "
-                         f"{100 * e.get('max_com_deviation', 0):.2f} cm, max pivot slip "
-                         f"{1000 * e.get('max_pivot_slip', 0):.1f} mm, fell {e.get('fell')}")
+            lines += _physics_lines(e, r["robustness"])
         figs = [("plan", r["dir"] / "plan.png"), ("trajectories", r["dir"] / "trajectories.png"),
                 ("execution", r["dir"] / "execution.png"), ("animation", r["dir"] / "execution.gif")]
         lines.append("")

@@ -121,3 +121,22 @@ def test_smoke_sweep_on_a_local_cluster(tmp_path):
 def test_an_unknown_object_is_one_line_exit_2_and_writes_nothing(tmp_path):
     r = runner.invoke(app, ["benchmark", "make", str(tmp_path / "out"), "--objects", "box,sofa"])
     assert r.exit_code == 2 and "no object family 'sofa'" in r.output and not (tmp_path / "out").exists()
+
+
+def test_physics_reason_names_the_first_failed_criterion():
+    """The sweep's reason code of a failed run is its first failed criterion (``execution.json``'s
+    ``failures``), so the report ranks over_force_bound, not_released, tilted, ... apart."""
+    from stages.benchmark import sweep
+
+    assert sweep.physics_reason({"success": True, "failures": []}) == ("ok", "")
+    ex = {"success": False, "failures": ["over_force_bound", "not_released"], "max_ball_force": 55.2,
+          "force_bound": 50.0}
+    assert sweep.physics_reason(ex) == ("physics:over_force_bound", "55.2 N over 50 N; not_released")
+    ex = {"success": False, "failures": ["tilted"], "final_tilt_error_deg": 3.14}
+    assert sweep.physics_reason(ex) == ("physics:tilted", "3.1 deg")
+    assert sweep.physics_reason({"success": False, "failures": ["not_released", "not_retreated"]}) == \
+        ("physics:not_released", "not_retreated")
+    ex = {"success": False, "failures": ["fell", "missed_position"], "fell": True, "fell_reason": "tilted 40 deg"}
+    assert sweep.physics_reason(ex) == ("physics:fell", "tilted 40 deg")
+    old = {"success": False, "final_position_error": 0.02, "final_yaw_error_deg": 1.0}  # before issue 15
+    assert sweep.physics_reason(old)[0] == "physics:missed_goal"

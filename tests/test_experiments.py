@@ -23,7 +23,9 @@ experiment shows, and the planner's ablations (``plan.Params(no_regrasp=, no_tum
   2). Without tumbling or without USP, no plan. One-ball holds are checked with 0.3 of the ball's
   friction (``hold_eef_friction``): the hand-overs found with 0.8 of it (the pusher on the inboard
   side face, holding by friction) tipped the piano in physics, the ball pressing as planned. In
-  PyBullet the nominal run and seeds 0-4 succeed (1.2-4.8 mm, < 1°). The pen holder does not decide
+  PyBullet the nominal run and seeds 1-10 succeeded by issue 15's criteria (released, at rest, within
+  the 50 N bound) until its USP margin (2 cm) refused the USP pose this route needs, whose CoM lies
+  0.31 mm past the table's edge: now there is no plan (``EXP3_NO_PLAN``). The pen holder does not decide
   the route: the goal lies on another face, which only a tumble reaches. The layout is not
   robust: its goal is a lattice pose (the end of the pivot out of USP); moved by 1 cm or 5°, or with
   the start moved by 1 cm, there is no path in the graph: the goal's connecting pivots (from that
@@ -45,6 +47,11 @@ pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "data" / "scenes"
 EXPERIMENTS = ("exp1_reach", "exp2_rotate", "exp3_obstacle")
+#: Issue 15's USP margin (``poses.Params.usp_margin``) leaves Exp. 3 without a plan: the truth, kept.
+EXP3_NO_PLAN = pytest.mark.xfail(strict=True, reason=(
+    "issue 15: Exp. 3's only route tumbles into a USP pose whose CoM lies 0.31 mm past the table's edge; "
+    "with usp_margin = 2 cm that pose is neither SP nor USP and is refused, and the lattice has no other "
+    "route to the goal (start and goal moved 2-4 cm towards the edge: no plan either)"))
 
 
 class Builds:
@@ -185,6 +192,7 @@ def test_experiment_starts_stand_on_the_table(builds):
         assert np.all(np.abs(feet[:, :2]) <= half), name
 
 
+@EXP3_NO_PLAN
 def test_exp3_tumbles_into_usp_onto_a_catch_and_regrasps_there(builds):
     """Fig. 18 b-i: the piano is tumbled over the table's edge into USP, onto the catcher's ball waiting
     under the overhang; the pusher then presses it onto the table from above (the hold) while the
@@ -225,6 +233,7 @@ def test_exp3_tumbles_into_usp_onto_a_catch_and_regrasps_there(builds):
     assert after["primitive"] == "pivot" and after["support"] == "SP" and after["contacts"] == regrasp["contacts"]
 
 
+@EXP3_NO_PLAN
 def test_exp3_regrasps_in_usp_in_physics(builds):
     """Exp. 3 end to end in PyBullet: the tumble into USP, the catch, the regrasp in USP one ball at a
     time and the pivot back into SP bring the piano to the goal, with no fall and no collision."""
@@ -236,8 +245,9 @@ def test_exp3_regrasps_in_usp_in_physics(builds):
     assert trajectory.run(scene, builds.analysis, b / "plan_full.json", b / "trajectories.parquet",
                           trajectory.Params())["status"] == "ok"
     m = execute.run(scene, builds.analysis, b / "trajectories.parquet", b / "exec", execute.Params()).metrics
-    assert m["success"], {k: m[k] for k in ("final_position_error", "final_yaw_error_deg", "fell", "collision")}
-    assert not m["fell"] and not m["collision"]
+    assert m["success"] and m["failures"] == [], {k: m[k] for k in ("failures", "final_position_error",
+                                                                    "final_yaw_error_deg", "max_ball_force")}
+    assert not m["fell"] and not m["collision"] and m["released"] and m["at_rest"]
 
 
 def test_a_ball_under_the_object_is_refused_unless_it_is_past_the_tables_edge(builds):
@@ -268,6 +278,7 @@ def test_exp3_needs_usp(builds):
     assert builds.plan("exp3_obstacle", no_usp=True)["status"] == "infeasible"
 
 
+@EXP3_NO_PLAN
 def test_exp3_regrasps_in_usp(builds):
     assert builds.plan("exp3_obstacle")["counts"]["usp_regrasp"] >= 1
 
@@ -337,6 +348,7 @@ def test_catches_wait_under_the_overhang_and_holds_press_from_above(builds):
             assert s != "ok"  # the catch's reason, or the pusher's when that failed first
 
 
+@EXP3_NO_PLAN
 def test_a_tumble_the_motion_stage_cannot_do_is_backtracked_in_the_search(builds, tmp_path, monkeypatch):
     """``pivot plan`` asks ``trajectory.check_tumble`` of every tumble it walks: when it fails (here made
     to, as for a tumble with no catcher), the edge is removed with that reason and the search goes on;

@@ -268,3 +268,45 @@ def test_spread_takes_the_best_and_then_candidates_evenly_down_the_ranking():
     ranked = np.arange(100, 120)
     assert _spread(ranked, 5).tolist() == [100, 105, 110, 114, 119]
     assert _spread(ranked[:3], 5).tolist() == [100, 101, 102]  # fewer than asked: all of them
+
+
+def test_eef_normal_angle_change_is_the_turn_of_the_tool_against_the_normal():
+    """§5.1's check: arms fixed in their zero posture (the tool axis straight up, W z) while the object
+    turns 30 deg about W x: a contact whose inward normal starts along the tool axis ends 30 deg from it.
+    A turn about W z, which keeps the angle to the vertical, changes nothing."""
+    from stages.robot import load_robot
+    from stages.scene import load_scene
+    from tests.conftest import REPO
+
+    scene = load_scene(REPO / "data" / "scenes" / "default.json")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    T, n = 7, robot.arm("left").dof
+    q = np.zeros((T, 1, 2, n))
+    n_O = np.array([[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]])  # outward down: inward along the tool
+    turn = np.linspace(0.0, np.radians(30.0), T)
+    about_x = np.stack([se3.make_transform(Rotation.from_rotvec([a, 0.0, 0.0]).as_matrix(), np.zeros(3))
+                        for a in turn])[None]
+    about_z = np.stack([se3.make_transform(Rotation.from_rotvec([0.0, 0.0, a]).as_matrix(), np.zeros(3))
+                        for a in turn])[None]
+    assert graph.eef_normal_angle_change(robot, q, about_x, n_O)[0] == pytest.approx(np.radians(30.0), abs=1e-6)
+    assert graph.eef_normal_angle_change(robot, q, about_z, n_O)[0] == pytest.approx(0.0, abs=1e-6)  # arccos at 1
+
+
+def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(small_build, tmp_path):
+    """With a 5 deg bound on the change of the ball-normal angle, pivot edges whose motion the default
+    passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict."""
+    from dataclasses import replace
+
+    from stages import artifacts
+
+    scene, b = small_build
+    ref = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph",
+              replace(graph.Params(), max_eef_normal_change=np.radians(5.0)))
+    got = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
+    piv = ref["primitive"] == "pivot"
+    turned = piv & (got["status"] == "eef_normal_angle")
+    # Refused before the equilibrium check, which the default run may have failed them on after.
+    assert turned.any() and np.isin(ref["status"][turned], ["ok", "unstable"]).all()
+    assert (ref["status"][turned] == "ok").any()
+    assert (got["status"][~turned] == ref["status"][~turned]).all()

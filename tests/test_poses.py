@@ -90,6 +90,22 @@ def test_overhang_at_the_table_edge_is_sp_until_the_com_passes_the_edge_then_usp
     assert poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1)).status[0] == "off_table"
 
 
+def test_a_com_between_the_sp_and_usp_margins_is_neither():
+    """Issue 15's knife edge: with its CoM 1 cm past the table's edge the box is not SP (5 mm inside) and
+    not USP (2 cm beyond): refused as unstable, with both margins in the reason; 0.3 mm past it too
+    (Exp. 3's old USP pose); 2 cm past it, USP; with no USP margin the 1 cm pose is USP again."""
+    model = box_model()
+    for x in (0.31, 0.3003):
+        X, g = upright(model, xy=(x, 0.0))
+        status, why = poses.describe_pose(model, X, g, (0.6, 0.6), (), poses.Params())
+        assert status == "unstable" and "between SP (0.005 m inside) and USP (0.02 m beyond)" in why, why
+    X, g = upright(model, xy=(0.32, 0.0))
+    assert poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1)).support[0] == "USP"
+    X, g = upright(model, xy=(0.31, 0.0))
+    ps = poses.sample_poses(model, X, g, (0.6, 0.6), (), poses.Params(max_poses=1, usp_margin=0.0))
+    assert ps.status[0] == "ok" and ps.support[0] == "USP"
+
+
 def test_table_support_is_the_footprint_clipped_to_the_table():
     model = box_model()
     X, g = upright(model, xy=(0.33, 0.1))

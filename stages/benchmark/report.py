@@ -156,7 +156,8 @@ def write_report(out: str | Path) -> Path:
     text = [f"# pivot benchmark: {total['cases']} cases, {seeds} seeds each",
             "", f"Suite `{out.name}`: {len(suite['objects'])} objects "
             f"({', '.join(suite['objects'])}), goal kinds translate / rotate / face; seed 0 runs the nominal "
-            "physics, seeds > 0 randomize friction, CoM, inertia and mass. Regenerate: `make benchmark`.", "",
+            "physics, seeds > 0 perturb friction, CoM, inertia, mass and the initial position. "
+            "Regenerate: `make benchmark`.", "",
             "## Overall", "", *rate_rows("suite", [("all", total)]), "",
             "## Per object", "", *rate_rows("object", by_object), "", "![rates](figures/rates_by_object.png)", "",
             "## Per goal kind", "", *rate_rows("goal kind", by_kind), "",

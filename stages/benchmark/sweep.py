@@ -3,7 +3,7 @@
 A case is one Dask task (:func:`run_case`) that runs the chain exactly as a user would, each stage
 its own ``python -m pivotcli`` process in the case's build folder ``runs/<case>/`` (the commands of
 the Makefile's stage targets): analyze, sample, graph, plan, mpc, then execute once per seed (seed 0
-nominal, seed k > 0 ``--randomize --seed k``: friction, CoM, inertia and mass perturbed). A stage's
+nominal, seed k > 0 ``--seed k``: friction, CoM, inertia, mass and initial position perturbed). A stage's
 output goes to ``runs/<case>/logs/<stage>.log``; its wall time and peak resident memory
 (``os.wait4``'s ``ru_maxrss`` of that process) are measured.
 
@@ -115,7 +115,7 @@ def stage_argv(stage: str, scene: Path, b: Path, seed: int = 0) -> list[str]:
                 "--out", str(full / "trajectories.parquet")],
         "execute": [*pivot, "execute", str(scene), "--build", str(b), "--trajectories",
                     str(full / "trajectories.parquet"), "--out", str(full / f"seed{seed}"), "--seed", str(seed),
-                    "--frames", "0", *(["--randomize"] if seed > 0 else [])],
+                    "--frames", "0"],
     }[stage]
 
 
@@ -175,9 +175,18 @@ def stage_outcome(run: StageRun, b: Path, seed: int) -> tuple[str, str]:
 
 
 def physics_reason(ex: dict) -> tuple[str, str]:
-    """``(reason code, detail)`` of an execution (``execution.json``)."""
+    """``(reason code, detail)`` of an execution (``execution.json``): ``physics:<code>`` with the first of
+    its ``failures`` (``stages.execute.FAILURES``: fell, collision, over_force_bound, not_released,
+    not_retreated, tilted, not_at_rest, missed_position, missed_yaw), the detail naming the others."""
     if ex.get("success"):
         return "ok", ""
+    failures = list(ex.get("failures", []))
+    if failures and failures[0] not in ("fell", "collision"):
+        first = failures[0]
+        detail = {"over_force_bound": f"{ex.get('max_ball_force', float('nan')):.1f} N over "
+                                      f"{ex.get('force_bound', float('nan')):.0f} N",
+                  "tilted": f"{ex.get('final_tilt_error_deg', float('nan')):.1f} deg"}.get(first, "")
+        return f"physics:{first}", "; ".join(x for x in (detail, ", ".join(failures[1:])) if x)
     if ex.get("fell"):
         return "physics:fell", str(ex.get("fell_reason", ""))
     if ex.get("collision"):
