@@ -116,8 +116,9 @@ STRICT_AWAY = dict(away_angle=np.radians(120.0))
 def test_scene_start_turned_away_from_the_arms_has_no_grasp(piano):
     from stages import sample
 
-    p = plan_scene(piano, "start", sample_params=sample.Params(**STRICT_AWAY), **{"start.xy": [0.05, 0.1], "start.yaw_deg": -40, "goal.xy": [0.0, 0.0],
-                                      "planner.max_poses": 20})
+    p = plan_scene(piano, "start", sample_params=sample.Params(**STRICT_AWAY),
+                   **{"start.xy": [0.05, 0.1], "start.yaw_deg": -40, "goal.xy": [0.0, 0.0],
+                      "planner.max_poses": 20})
     d = p["diagnosis"]
     assert p["reason"] == "no path in the graph: the start pose has no grasp"
     assert d["start"]["grasps"] == 0 and sum(d["start"]["rejected"].values()) == d["start"]["candidates"] > 0
@@ -126,7 +127,8 @@ def test_scene_start_turned_away_from_the_arms_has_no_grasp(piano):
 def test_scene_goal_turned_away_from_the_arms_has_no_grasp(piano):
     from stages import sample
 
-    p = plan_scene(piano, "goal", sample_params=sample.Params(**STRICT_AWAY), **{"goal.xy": [0.05, 0.1], "goal.yaw_deg": -40, "planner.max_poses": 10})
+    p = plan_scene(piano, "goal", sample_params=sample.Params(**STRICT_AWAY),
+                   **{"goal.xy": [0.05, 0.1], "goal.yaw_deg": -40, "planner.max_poses": 10})
     d = p["diagnosis"]
     assert d["cause"] == "goal_has_no_grasp" and d["start"]["grasps"] > 0 and d["goal"]["grasps"] == 0
 
