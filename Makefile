@@ -73,19 +73,19 @@ $(MPC_OUT) &: $(MPC_DEPS) | $(INSTALLED)
 $(EXECUTE_OUT) &: $(EXECUTE_DEPS) | $(INSTALLED)
 	$(PIVOT) execute $(SCENE_FILE) --build $(B) --variant $(V) --seed $(SEED) || [ $$? -eq 1 ]
 
-$(B)/analysis.png: $(B)/analysis/analysis.json $(ANALYSIS_FIG_DEPS) | $(INSTALLED)
+$(B)/analysis.png: $(ANALYZE_OUT) $(ANALYSIS_FIG_DEPS) | $(INSTALLED)
 	$(PIVOT) show analysis $(B)/analysis --png $@
 
-$(B)/poses.png: $(B)/sample/sample.json $(POSES_FIG_DEPS) | $(INSTALLED)
+$(B)/poses.png: $(SAMPLE_OUT) $(POSES_FIG_DEPS) | $(INSTALLED)
 	$(PIVOT) show poses $(B)/sample --scene $(SCENE_FILE) --png $@
 
-$(R)/plan.png: $(R)/plan.json $(PLAN_FIG_DEPS) | $(INSTALLED)
-	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --plan $< --png $@
+$(R)/plan.png: $(PLAN_OUT) $(PLAN_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --plan $(R)/plan.json --png $@
 
-$(R)/trajectories.png: $(R)/trajectories.json $(TRAJECTORIES_FIG_DEPS) | $(INSTALLED)
+$(R)/trajectories.png: $(MPC_OUT) $(TRAJECTORIES_FIG_DEPS) | $(INSTALLED)
 	$(PIVOT) show trajectories $(R)/trajectories.parquet --scene $(SCENE_FILE) --png $@
 
-$(R)/execution.png: $(R)/execution.json $(EXECUTION_FIG_DEPS) | $(INSTALLED)
+$(R)/execution.png: $(EXECUTE_OUT) $(EXECUTION_FIG_DEPS) | $(INSTALLED)
 	$(PIVOT) show execution $(R) --png $@
 endif
 
