@@ -140,7 +140,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation, Slerp
 from trimesh.intersections import slice_faces_plane
 
-from stages import artifacts, se3
+from stages import artifacts, se3, stagelog
 from stages.analyze import load_mesh
 from stages.artifacts import Field, atomic_path
 from stages.errors import InputError
@@ -1381,4 +1381,5 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
             np.savez_compressed(f, frames=np.stack(ex.frames))
     elif frames_path.exists():
         frames_path.unlink()
+    stagelog.log_execution(metrics, ex.log)
     return ex

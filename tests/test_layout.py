@@ -181,3 +181,24 @@ def test_pivot_help_imports_no_stage_and_no_numpy():
     assert proc.returncode == 0, proc.stderr
     assert "analyze" in proc.stdout and "benchmark" in proc.stdout
     assert proc.stdout.strip().splitlines()[-1] == "['stages', 'stages.errors']"
+
+
+# ----------------------------------------------------------------------------------------- logging
+def test_v_logs_each_stage_counts_and_vv_its_reasons(box_path, tmp_path):
+    r = invoke("analyze", box_path, "--out", tmp_path / "a")
+    assert r.exit_code == 0 and "stages.analyze" not in r.output
+    r = invoke("-v", "analyze", box_path, "--out", tmp_path / "a")
+    assert "stages.analyze: analysis: cone_pairs 0, " in r.output and "filtered" not in r.output, r.output
+    r = invoke("-vv", "analyze", box_path, "--out", tmp_path / "a")
+    assert "stages.analyze: analysis: contact candidates filtered: " in r.output, r.output
+
+
+def test_vv_plan_logs_every_step_and_every_edge_backtracking_removed(small_build, tmp_path):
+    scene, b = small_build
+    r = invoke("-vv", "plan", scene, "--build", b, "--out", tmp_path / "plan.json")
+    assert r.exit_code == 0, r.output
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    lines = r.output.splitlines()
+    assert sum(line.startswith("stages.plan: plan: step ") for line in lines) == len(plan["steps"])
+    assert sum(line.startswith("stages.plan: plan: removed ") for line in lines) == len(plan["log"])
+    assert any(line.startswith(f"stages.plan: plan: {plan['status']}, cost ") for line in lines)
