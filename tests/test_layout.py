@@ -202,3 +202,19 @@ def test_vv_plan_logs_every_step_and_every_edge_backtracking_removed(small_build
     assert sum(line.startswith("stages.plan: plan: step ") for line in lines) == len(plan["steps"])
     assert sum(line.startswith("stages.plan: plan: removed ") for line in lines) == len(plan["log"])
     assert any(line.startswith(f"stages.plan: plan: {plan['status']}, cost ") for line in lines)
+
+
+# ------------------------------------------------------------------------------ units outside pyarrow
+def test_parquet_artifacts_carry_units_and_frames_as_schema_level_maps(tmp_path):
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    from stages import artifacts
+
+    fields = [artifacts.Field("pose_id", "id"), artifacts.Field("x", "m", "W"), artifacts.Field("angle", "rad")]
+    cols = {"pose_id": np.arange(3), "x": np.zeros(3), "angle": np.ones(3)}
+    artifacts.write_table(tmp_path / "t.parquet", cols, fields, artifacts.make_meta("t", {}, {}, "test"))
+    schema = pq.read_schema(tmp_path / "t.parquet")
+    units, frames = json.loads(schema.metadata[b"units"]), json.loads(schema.metadata[b"frames"])
+    assert units == {f.name: schema.field(f.name).metadata[b"unit"].decode() for f in fields}
+    assert units == {"pose_id": "id", "x": "m", "angle": "rad"} and frames == {"x": "W"}
