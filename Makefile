@@ -19,19 +19,28 @@ B := build/$(SCENE)
 # Code every stage uses (the benchmark suite's prerequisites; the stages' come from `pivot deps`).
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute reproduce golden clean
+.PHONY: help install lock demo test lint bench benchmark analysis sample plan mpc execute reproduce golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
 	@echo "  (SCENE=name picks data/scenes/name.json; default: $(SCENE))"
 
-$(INSTALLED): pyproject.toml
+$(INSTALLED): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[dev]'
 	touch $@
 
-install: $(INSTALLED) ## create .venv and install pivot with its dev tools
+install: $(INSTALLED) ## create .venv and install pivot with its dev tools (versions from constraints.txt)
+
+# The newest versions pip resolves for pivot[dev] in a fresh venv, pinned; review the diff, then make test.
+lock: ## refresh constraints.txt (the pinned versions make install and CI use)
+	rm -rf build/lock
+	$(PYTHON) -m venv build/lock
+	build/lock/bin/python -m pip install -q '.[dev]'
+	{ head -n 2 constraints.txt; build/lock/bin/python -m pip freeze --exclude-editable | grep -v '^pivot=='; } \
+		> build/lock/constraints.txt
+	mv build/lock/constraints.txt constraints.txt
 
 # ---------------------------------------------------------------------------------------- stages
 # A plan variant (VARIANT=no-regrasp, no-tumble or no-usp: the paper's ablations) shares the graph;
@@ -138,10 +147,13 @@ test: $(INSTALLED) lint ## install, lint and run the whole test suite
 bench: $(INSTALLED) ## print each stage's time beside its target and the paper's figure
 	$(BIN)/python bench/run.py
 
+# The reference scenes' chains, every stage, as readable digests tests/golden/<scene>.json (tests/golden.py),
+# and the toy piano's analysis as artifacts; `make test` compares both.
 golden: $(INSTALLED) ## regenerate the golden artifacts under tests/golden (review the diff before committing)
 	rm -rf tests/golden/toy_piano
 	$(PIVOT) analyze --scene data/scenes/default.json --out tests/golden/toy_piano
 	rm -f tests/golden/toy_piano/object.ply tests/golden/toy_piano/*.timings.json
+	$(BIN)/python -m tests.golden
 
 clean: ## remove build outputs (keeps .venv)
 	rm -rf build
