@@ -20,7 +20,8 @@ def execute(
     seed: Annotated[int, typer.Option(help="Seed of the physics perturbations (with --randomize).")] = 0,
     randomize: Annotated[bool, typer.Option(help="Perturb friction, CoM, inertia and mass (robustness runs).")] = False,
     gui: Annotated[bool, typer.Option(help="Open PyBullet's window (results are the same).")] = False,
-    frames: Annotated[int, typer.Option(help="Frames to render for pivot show execution.")] = 24,
+    frames: Annotated[int | None, typer.Option(help="Frames to render for pivot show execution "
+                                                    "(default: one per second of motion).")] = None,
 ) -> None:
     """Run the trajectories in PyBullet: the object moves only through its contacts (§6)."""
     from dataclasses import replace
@@ -32,6 +33,11 @@ def execute(
     out = out or trajectories.parent
     params = replace(stage.Params(), seed=seed, randomize=randomize)
     with cli_errors():
+        if frames is None:
+            from stages import artifacts
+
+            duration = artifacts.read_json(trajectories.with_suffix(".json"), "mpc").get("duration", 0.0)
+            frames = max(2, round(duration))
         res = stage.run(scene, lay.analysis, trajectories, out, params, frames=frames, gui=gui,
                         producer=f"execute {scene}")
     m = res.metrics
