@@ -16,88 +16,100 @@ INSTALLED := $(VENV)/.installed
 SCENE ?= default
 SCENE_FILE := data/scenes/$(SCENE).json
 B := build/$(SCENE)
-# Code every stage uses: a change here reruns everything.
+# Code every stage uses (the benchmark suite's prerequisites; the stages' come from `pivot deps`).
 SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
 
-.PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute view browser reproduce golden clean
+.PHONY: help install lock demo test lint bench benchmark analysis sample plan mpc execute view browser reproduce \
+	golden clean
 
 help: ## list the targets
 	@grep -E '^[a-z][a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
 	@echo "  (SCENE=name picks data/scenes/name.json; default: $(SCENE))"
 
-$(INSTALLED): pyproject.toml
+$(INSTALLED): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[dev]'
 	touch $@
 
-install: $(INSTALLED) ## create .venv and install pivot with its dev tools
+install: $(INSTALLED) ## create .venv and install pivot with its dev tools (versions from constraints.txt)
+
+# The newest versions pip resolves for pivot[dev] in a fresh venv, pinned; review the diff, then make test.
+lock: ## refresh constraints.txt (the pinned versions make install and CI use)
+	rm -rf build/lock
+	$(PYTHON) -m venv build/lock
+	build/lock/bin/python -m pip install -q '.[dev]'
+	{ head -n 2 constraints.txt; build/lock/bin/python -m pip freeze --exclude-editable | grep -v '^pivot=='; } \
+		> build/lock/constraints.txt
+	mv build/lock/constraints.txt constraints.txt
 
 # ---------------------------------------------------------------------------------------- stages
-$(B)/analysis/analysis.json: $(SCENE_FILE) $(wildcard data/objects/*) stages/analyze.py stages/scene.py $(SHARED) | $(INSTALLED)
-	$(PIVOT) analyze --scene $(SCENE_FILE) --out $(B)/analysis
-
-$(B)/analysis.png: $(B)/analysis/analysis.json stages/plots.py | $(INSTALLED)
-	$(PIVOT) show analysis $(B)/analysis --png $@
-
-analysis: $(B)/analysis.png ## analyse the scene's object and draw it (Fig. 4)
-
-SAMPLE_CODE := stages/sample.py stages/poses.py stages/objectmodel.py stages/robot.py stages/stability.py \
-	stages/scene.py stages/simplify.py stages/objects.py stages/cache.py $(wildcard data/robots/*)
-$(B)/sample/sample.json: $(SCENE_FILE) $(B)/analysis/analysis.json $(SAMPLE_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) sample $(SCENE_FILE) --analysis $(B)/analysis --out $(B)/sample
-
-$(B)/poses.png: $(B)/sample/sample.json stages/plots.py | $(INSTALLED)
-	$(PIVOT) show poses $(B)/sample --scene $(SCENE_FILE) --png $@
-
-sample: $(B)/poses.png ## sample object poses and their grasps, draw them (Fig. 10a)
-
-GRAPH_CODE := stages/graph.py stages/mpc.py $(SAMPLE_CODE)
-$(B)/graph/graph.json: $(B)/sample/sample.json $(GRAPH_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) graph $(SCENE_FILE) --build $(B)
-
 # A plan variant (VARIANT=no-regrasp, no-tumble or no-usp: the paper's ablations) shares the graph;
 # its plan, trajectories and execution go to $(B)/<variant>/ (the full planner: $(B)/full/).
 VARIANT ?=
-R := $(B)/$(if $(VARIANT),$(VARIANT),full)
+V := $(if $(VARIANT),$(VARIANT),full)
+R := $(B)/$(V)
 PLAN_FLAGS := $(if $(VARIANT),--$(VARIANT),)
-
-PLAN_CODE := stages/plan.py stages/diagnosis.py stages/transit.py stages/connect.py stages/trajectory.py $(GRAPH_CODE)
-# pivot plan exits 1 when no plan exists; plan.json still records why, so Make keeps it.
-$(R)/plan.json: $(B)/graph/graph.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) plan $(SCENE_FILE) --build $(B) --out $@ $(PLAN_FLAGS) || [ $$? -eq 1 ]
-
-$(R)/plan.png: $(R)/plan.json stages/plots.py | $(INSTALLED)
-	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --plan $< --png $@
-
-plan: $(R)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
-
-$(R)/trajectories.parquet: $(R)/plan.json $(PLAN_CODE) $(SHARED) | $(INSTALLED)
-	$(PIVOT) mpc $(SCENE_FILE) --build $(B) --plan $< --out $@
-
-$(R)/trajectories.png: $(R)/trajectories.parquet stages/plots.py | $(INSTALLED)
-	$(PIVOT) show trajectories $< --scene $(SCENE_FILE) --png $@
-
-mpc: $(R)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
-
 # SEED 0 runs the nominal physics, N > 0 perturbs it; SEEDS=K also runs seeds 1..K (robustness.json).
 SEED ?= 0
 SEEDS ?= 0
+
+# Each stage's outputs (<STAGE>_OUT, every file it writes) and prerequisites (<STAGE>_DEPS: its upstream
+# outputs, the scene and the files it names, and every module its command imports, found from the import
+# graph as gcc -M finds headers) come from `pivot deps`, which reads pivotcli/layout.py, the same rules
+# `pivot run` follows. Regenerated when the scene or any code changes; only read for the stage targets.
+DEPS := $(B)/.deps-$(V).mk
+$(DEPS): $(SCENE_FILE) $(wildcard pivotcli/*.py stages/*.py stages/*/*.py) | $(INSTALLED)
+	$(PIVOT) deps $(SCENE_FILE) --build $(B) --variant $(V) --out $@
+
+ifneq ($(filter-out help install lint test bench golden clean benchmark reproduce demo lock browser,$(MAKECMDGOALS)),)
+include $(DEPS)
+
+$(ANALYZE_OUT) &: $(ANALYZE_DEPS) | $(INSTALLED)
+	$(PIVOT) analyze --scene $(SCENE_FILE) --build $(B)
+
+$(SAMPLE_OUT) &: $(SAMPLE_DEPS) | $(INSTALLED)
+	$(PIVOT) sample $(SCENE_FILE) --build $(B)
+
+$(GRAPH_OUT) &: $(GRAPH_DEPS) | $(INSTALLED)
+	$(PIVOT) graph $(SCENE_FILE) --build $(B)
+
+# pivot plan exits 1 when no plan exists; plan.json still records why, so Make keeps it.
+$(PLAN_OUT) &: $(PLAN_DEPS) | $(INSTALLED)
+	$(PIVOT) plan $(SCENE_FILE) --build $(B) $(PLAN_FLAGS) || [ $$? -eq 1 ]
+
+$(MPC_OUT) &: $(MPC_DEPS) | $(INSTALLED)
+	$(PIVOT) mpc $(SCENE_FILE) --build $(B) --variant $(V)
+
 # pivot execute exits 1 when the object misses the goal in physics; execution.json records how.
-$(R)/execution.json: $(R)/trajectories.parquet stages/execute.py stages/simplify.py stages/objects.py $(SHARED) | $(INSTALLED)
-	$(PIVOT) execute $(SCENE_FILE) --build $(B) --trajectories $< --out $(R) --seed $(SEED) --seeds $(SEEDS) \
-	  || [ $$? -eq 1 ]
+$(EXECUTE_OUT) &: $(EXECUTE_DEPS) | $(INSTALLED)
+	$(PIVOT) execute $(SCENE_FILE) --build $(B) --variant $(V) --seed $(SEED) --seeds $(SEEDS) || [ $$? -eq 1 ]
 
-$(R)/execution.png: $(R)/execution.json | $(INSTALLED)
-	$(PIVOT) show execution $(R) --scene $(SCENE_FILE) --png $@
+$(B)/analysis.png: $(ANALYZE_OUT) $(ANALYSIS_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show analysis $(B)/analysis --png $@
 
-execute: $(R)/execution.png ## run the trajectories in PyBullet physics, storyboard + GIF (Fig. 15-18)
+$(B)/poses.png: $(SAMPLE_OUT) $(POSES_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show poses $(B)/sample --scene $(SCENE_FILE) --png $@
+
+$(R)/plan.png: $(PLAN_OUT) $(PLAN_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show plan $(B) --scene $(SCENE_FILE) --plan $(R)/plan.json --png $@
+
+$(R)/trajectories.png: $(MPC_OUT) $(TRAJECTORIES_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show trajectories $(R)/trajectories.parquet --scene $(SCENE_FILE) --png $@
+
+$(R)/execution.png: $(EXECUTE_OUT) $(EXECUTION_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) show execution $(R) --png $@
 
 # pivot view exits 1 when there is no motion to show (no plan); the page still shows the scene and why.
-$(R)/view.html: $(R)/plan.json $(wildcard $(R)/trajectories.parquet $(R)/execution.json) stages/view.py \
-		stages/threejs.py | $(INSTALLED)
-	$(PIVOT) view $(B) --scene $(SCENE_FILE) --variant $(notdir $(R)) --out $@ || [ $$? -eq 1 ]
+$(R)/view.html: $(PLAN_OUT) $(wildcard $(R)/trajectories.parquet $(R)/execution.json) $(VIEW_FIG_DEPS) | $(INSTALLED)
+	$(PIVOT) view $(B) --scene $(SCENE_FILE) --variant $(V) --out $@ || [ $$? -eq 1 ]
+endif
 
+analysis: $(B)/analysis.png ## analyse the scene's object and draw it (Fig. 4)
+sample: $(B)/poses.png ## sample object poses and their grasps, draw them (Fig. 10a)
+plan: $(R)/plan.png ## build the graph, plan with backtracking and draw the plan (Fig. 10b)
+mpc: $(R)/trajectories.png ## MPC force and joint trajectories of the plan, drawn (Fig. 12)
+execute: $(R)/execution.png ## run the trajectories in PyBullet physics, storyboard + GIF (Fig. 15-18)
 view: $(R)/view.html ## the plan beside its execution in 3D: one HTML page to turn and scrub, offline
 
 # ------------------------------------------------------------------------------------------ jobs
@@ -154,10 +166,13 @@ test: $(INSTALLED) lint browser ## install, lint and run the whole test suite
 bench: $(INSTALLED) ## print each stage's time beside its target and the paper's figure
 	$(BIN)/python bench/run.py
 
+# The reference scenes' chains, every stage, as readable digests tests/golden/<scene>.json (tests/golden.py),
+# and the toy piano's analysis as artifacts; `make test` compares both.
 golden: $(INSTALLED) ## regenerate the golden artifacts under tests/golden (review the diff before committing)
 	rm -rf tests/golden/toy_piano
 	$(PIVOT) analyze --scene data/scenes/default.json --out tests/golden/toy_piano
 	rm -f tests/golden/toy_piano/object.ply tests/golden/toy_piano/*.timings.json
+	$(BIN)/python -m tests.golden
 
 clean: ## remove build outputs (keeps .venv)
 	rm -rf build

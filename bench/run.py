@@ -160,7 +160,8 @@ def main() -> None:
     bench_analysis()
     for module, fn, label in (("bench_robot", "rows", "robot IK"), ("bench_stability", "rows", "stability"),
                               ("bench_transit", "rows", "transit"), ("bench_mpc", "rows", "MPC"),
-                              ("bench_execute", "rows", "execution"), ("bench_scale", "rows", "scale")):
+                              ("bench_execute", "rows", "execution"), ("bench_scale", "rows", "scale"),
+                              ("bench_startup", "rows", "start-up")):
         bench_module(module, fn, label)
     bench_pipeline()
     bench_stage_memory()

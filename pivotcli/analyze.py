@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from pivotcli.common import cli_errors, info, step
+from pivotcli.layout import Layout
 from stages import analyze as stage
 from stages.errors import InputError
 from stages.scene import load_scene
@@ -19,7 +20,8 @@ def analyze(
     mesh: Annotated[Path | None, typer.Argument(help="Object mesh (OBJ, STL, PLY, OFF, GLB), in metres.")] = None,
     scene: Annotated[Path | None, typer.Option(help="Take the mesh, mass and scale from this scene file.")] = None,
     mass: Annotated[float, typer.Option(help="Object mass (kg).")] = 3.1,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("build/analysis"),
+    build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene or mesh name>).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default <build>/analysis).")] = None,
     scale: Annotated[float, typer.Option(help="Multiply the mesh coordinates by this (e.g. 0.001 for mm).")] = 1.0,
     segment_angle: Annotated[float, typer.Option(help="Region-growing normal threshold (deg).")] = _D.segment_angle_deg,
     min_facet_area: Annotated[float, typer.Option(help="Smallest facet with contacts (m^2).")] = _D.min_facet_area,
@@ -53,6 +55,7 @@ def analyze(
             mesh, mass, scale = spec.mesh_path, spec.mass, spec.scale
         elif mesh is None:
             raise InputError("pivot analyze: give a MESH file or --scene SCENE")
+        out = out or Layout.of(scene or mesh, build).analysis
         with step(f"analysing {mesh.name}"):
             result = stage.run(mesh, out, mass, params, scale=scale, producer=f"analyze {mesh}")
     c = result.summary["counts"]

@@ -44,13 +44,27 @@ def step(description: str) -> Iterator[None]:
 def info(message: str) -> None:
     """A line for the user on stderr unless ``--quiet``."""
     if not state["quiet"]:
-        console.print(message, highlight=False)
+        console.print(message, highlight=False, soft_wrap=True)
 
 
 def configure(verbose: int, quiet: bool) -> None:
+    """Show the stages' logs on stderr: warnings by default, INFO with ``-v``, DEBUG with ``-vv``.
+
+    One handler on the ``pivot`` and ``stages`` loggers, bound to the current ``sys.stderr`` and replaced
+    on each call (so that repeated invocations in one process, as in tests, do not print twice).
+    """
     state["quiet"], state["verbose"] = quiet, verbose
     level = logging.DEBUG if verbose > 1 else logging.INFO if verbose else logging.WARNING
     if quiet:
         level = logging.ERROR
-    logging.basicConfig(level=level, format="%(name)s: %(message)s", stream=sys.stderr)
-    logging.getLogger().setLevel(level)
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s", stream=sys.stderr)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+    for name in ("pivot", "stages"):
+        logger = logging.getLogger(name)
+        for old in [h for h in logger.handlers if getattr(h, "_pivot", False)]:
+            logger.removeHandler(old)
+        handler._pivot = True
+        logger.addHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = False

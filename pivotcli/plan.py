@@ -8,12 +8,9 @@ from typing import Annotated
 import typer
 
 from pivotcli.common import cli_errors, info, step
-from stages import graph as graph_stage
-from stages import plan as plan_stage
+from pivotcli.layout import VARIANTS, Layout, variant_of
 
-
-def _dirs(scene: Path, build: Path | None) -> Path:
-    return build or Path("build") / scene.stem
+VARIANT_HELP = f"Planner variant whose plan to use: {', '.join(VARIANTS)} (its folder under the build)."
 
 
 def graph(
@@ -21,31 +18,36 @@ def graph(
     build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
 ) -> None:
     """Build the grasp-augmented graph: pivot, regrasp and tumble edges with their motion checks."""
-    b = _dirs(scene, build)
+    from stages import graph as graph_stage
+
+    lay = Layout.of(scene, build)
     with cli_errors(), step("building the graph"):
-        g = graph_stage.run(scene, b / "analysis", b / "sample", b / "graph", graph_stage.Params(),
+        g = graph_stage.run(scene, lay.analysis, lay.sample, lay.graph, graph_stage.Params(),
                             producer=f"graph {scene}")
     e = g.summary["edges"]
     info(f"{scene.stem}: {sum(g.summary['nodes'].values())} nodes; edges ok/rejected: pivot "
          f"{e['pivot']['ok']}/{e['pivot']['rejected']}, regrasp {e['regrasp']['ok']}/{e['regrasp']['rejected']}, "
-         f"tumble {e['tumble']['ok']}/{e['tumble']['rejected']} in {g.timings['total']:.2f} s -> {b / 'graph'}/")
+         f"tumble {e['tumble']['ok']}/{e['tumble']['rejected']} in {g.timings['total']:.2f} s -> {lay.graph}/")
 
 
 def plan(
     scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
     build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
-    out: Annotated[Path | None, typer.Option("--out", "-o", help="Plan file (default <build>/plan.json).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Plan file (default <build>/<variant>/plan.json, "
+                                                                  "the variant full or the ablation).")] = None,
     no_regrasp: Annotated[bool, typer.Option("--no-regrasp", help="Ablation: pivoting gait only [3].")] = False,
     no_tumble: Annotated[bool, typer.Option("--no-tumble", help="Ablation: no tumbling.")] = False,
     no_usp: Annotated[bool, typer.Option("--no-usp", help="Ablation: no unstable placements.")] = False,
     no_mpc: Annotated[bool, typer.Option("--no-mpc", help="Skip the MPC check of each pivot.")] = False,
 ) -> None:
     """Search the graph, check each primitive at the motion level and backtrack (§5.3) -> plan.json."""
-    b = _dirs(scene, build)
-    out = out or b / "plan.json"
+    from stages import plan as plan_stage
+
+    lay = Layout.of(scene, build, variant_of(no_regrasp, no_tumble, no_usp))
+    out = out or lay.plan
     params = plan_stage.Params(no_regrasp=no_regrasp, no_tumble=no_tumble, no_usp=no_usp, check_mpc=not no_mpc)
     with cli_errors(), step("planning"):
-        p = plan_stage.run(scene, b / "analysis", b / "sample", b / "graph", out, params, producer=f"plan {scene}")
+        p = plan_stage.run(scene, lay.analysis, lay.sample, lay.graph, out, params, producer=f"plan {scene}")
     removed = len(p["log"])
     if p["status"] == "infeasible":
         why = f"{p['reason']}; {p['diagnosis']['detail']}" if "diagnosis" in p else p["reason"]
@@ -64,8 +66,9 @@ def plan(
 def mpc(
     scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
     build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
-    plan_file: Annotated[Path | None, typer.Option("--plan", help="Plan (default <build>/plan.json).")] = None,
-    out: Annotated[Path | None, typer.Option("--out", "-o", help="Default <build>/trajectories.parquet.")] = None,
+    variant: Annotated[str, typer.Option(help=VARIANT_HELP)] = "full",
+    plan_file: Annotated[Path | None, typer.Option("--plan", help="Default <build>/<variant>/plan.json.")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Default: beside the plan.")] = None,
     horizon: Annotated[int, typer.Option(help="MPC prediction horizon N_p (steps).")] = 20,
     alpha: Annotated[float, typer.Option(help="MPC state-error weight (eq. 11).")] = 1e7,
     beta: Annotated[float, typer.Option(help="MPC force weight (eq. 11).")] = 1.0,
@@ -75,12 +78,13 @@ def mpc(
 
     from stages import trajectory
 
-    b = _dirs(scene, build)
-    out = out or b / "trajectories.parquet"
+    lay = Layout.of(scene, build, variant)
+    plan_file = plan_file or lay.plan
+    out = out or plan_file.parent / "trajectories.parquet"
     params = trajectory.Params()
     params = replace(params, mpc=replace(params.mpc, horizon=horizon, alpha=alpha, beta=beta))
     with cli_errors(), step("computing trajectories"):
-        stats = trajectory.run(scene, b / "analysis", plan_file or b / "plan.json", out, params,
+        stats = trajectory.run(scene, lay.analysis, plan_file, out, params,
                                producer=f"mpc {scene}")
     if stats["status"] != "ok":
         why = f": {stats['reason']}" if stats.get("reason") else ""

@@ -8,19 +8,22 @@ from typing import Annotated
 import typer
 
 from pivotcli.common import cli_errors, info, step
-from stages import sample as stage
+from pivotcli.layout import Layout
 
 
 def sample(
     scene: Annotated[Path, typer.Argument(help="Scene file (JSON).")],
-    analysis: Annotated[Path | None, typer.Option(help="Analysis folder (default build/<scene>/analysis).")] = None,
+    build: Annotated[Path | None, typer.Option(help="Build folder (default build/<scene>).")] = None,
+    analysis: Annotated[Path | None, typer.Option(help="Analysis folder (default <build>/analysis).")] = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder (default <build>/sample).")] = None,
 ) -> None:
     """Sample object poses on the table and refine the grasps of each (IK, collisions, stability)."""
+    from stages import sample as stage
+
+    layout = Layout.of(scene, build)
+    name = scene.stem
+    analysis, out = analysis or layout.analysis, out or layout.sample
     with cli_errors():
-        name = scene.stem
-        analysis = analysis or Path("build") / name / "analysis"
-        out = out or Path("build") / name / "sample"
         with step("sampling poses and grasps"):
             result = stage.run(scene, analysis, out, stage.Params(), producer=f"sample {scene}")
     s = result.summary

@@ -43,7 +43,7 @@ import trimesh
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from stages import artifacts, se3, tol
+from stages import artifacts, se3, stagelog, tol
 from stages.artifacts import Field
 from stages.errors import InputError
 
@@ -893,4 +893,5 @@ def run(mesh_path: str | Path, out_dir: str | Path, mass: float, params: Params,
     meta = artifacts.make_meta("analysis", meta_params, inputs, producer)
     artifacts.write_json(out / "analysis.json", result.summary, meta)
     artifacts.write_timings(out / "analysis.json", {**result.timings, "load": t_load})
+    stagelog.log_analysis(result.summary)
     return result

@@ -1,10 +1,12 @@
 """Parquet and JSON artifacts with the metadata of DESIGN.md, written atomically.
 
 A Parquet artifact is a table of columns (struct-of-arrays). Its schema metadata holds ``artifact``
-(name), ``schema_version``, ``params`` (JSON), ``inputs`` (name -> sha256 of each input file) and
-``producer``; each field holds ``unit`` and, for geometric columns, ``frame``. A JSON artifact holds
-the same under its ``meta`` key. Timings never go into an artifact: they go to
-``<artifact>.timings.json`` beside it, so that reruns with the same inputs are byte-identical.
+(name), ``schema_version``, ``params`` (JSON), ``inputs`` (name -> sha256 of each input file),
+``producer``, and ``units``/``frames`` (column -> unit, column -> frame: the same as the fields' own
+metadata, which pandas, polars and DuckDB do not show); each field holds ``unit`` and, for geometric
+columns, ``frame``. A JSON artifact holds the same under its ``meta`` key. Timings never go into an
+artifact: they go to ``<artifact>.timings.json`` beside it, so that reruns with the same inputs are
+byte-identical.
 
 Every write goes to a temporary file in the target folder and is renamed into place, so an
 interrupted run never leaves a half-written artifact behind.
@@ -106,7 +108,10 @@ def write_table(path: str | Path, columns: Mapping[str, np.ndarray], fields: lis
             md["frame"] = f.frame
         schema_fields.append(pa.field(f.name, arr.type, metadata=md))
         arrays.append(arr)
-    schema = pa.schema(schema_fields, metadata={k: json.dumps(v, sort_keys=True) for k, v in meta.items()})
+    # The units and frames again as schema-level maps: pandas, polars and DuckDB show the schema's metadata
+    # but drop the fields'.
+    units = {"units": {f.name: f.unit for f in fields}, "frames": {f.name: f.frame for f in fields if f.frame}}
+    schema = pa.schema(schema_fields, metadata={k: json.dumps(v, sort_keys=True) for k, v in {**meta, **units}.items()})
     table = pa.Table.from_arrays(arrays, schema=schema)
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, compression="zstd", write_statistics=False)

@@ -174,7 +174,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation, Slerp
 from trimesh.intersections import slice_faces_plane
 
-from stages import artifacts, se3
+from stages import artifacts, se3, stagelog
 from stages.analyze import load_mesh
 from stages.artifacts import Field, atomic_path
 from stages.errors import InputError
@@ -283,8 +283,7 @@ class Params:
         robot (module docstring, Perception): the object's pose, measured with Gaussian noise of
         this standard deviation per axis (m; deg about each axis) and this latency (s).
     cache_dir : folder of the convex-decomposition cache ("" = ``<system temp>/pivot-convex``).
-    width, height, camera_* : rendered frames (pixels) and the fixed camera: target (m, W),
-        distance (m), yaw and pitch (deg, PyBullet's convention).
+    width, height : rendered frames (pixels); the camera is chosen from the scene (:func:`scene_camera`).
     """
 
     dt: float = 1.0 / 240.0
@@ -334,10 +333,6 @@ class Params:
     cache_dir: str = ""
     width: int = 480
     height: int = 360
-    camera_target: tuple[float, float, float] = (0.0, 0.0, 0.15)
-    camera_distance: float = 1.7
-    camera_yaw_deg: float = 235.0
-    camera_pitch_deg: float = -25.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -1276,6 +1271,9 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                          spinningFriction=0.0, rollingFriction=0.0, frictionAnchor=1, restitution=0.0,
                          linearDamping=0.0, angularDamping=0.0, collisionMargin=params.object_margin,
                          activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+        camera = scene_camera(scene, plan.X_WO[0], X_WO_goal, com_O)
+        if frames > 0 or gui:  # the goal's footprint, drawn only: no collision shape, no mass
+            _add_goal_footprint(mesh, X_WO_goal, cid)
 
         zeros = [0.0] * len(movable)
         nt = 6 if params.task == "pose" else 3  # task coordinates per ball
@@ -1306,7 +1304,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             q_now = np.array([s[0] for s in states])
             raw["q"][r] = [q_now[arm_cols[0]], q_now[arm_cols[1]]]
             if r in frame_rows:
-                images.append(_render(cid, params))
+                images.append(_render(cid, params, camera))
 
         def check_collisions(t_now: float) -> list[float]:
             """Record the collisions of this step; returns each ball's force on the object (N)."""
@@ -1525,11 +1523,51 @@ def _make_log(plan: Plan, raw: dict, X_PO, com_O, hull_O, sup_vertex, sup_start)
     return {f.name: log[f.name] for f in LOG_FIELDS}
 
 
-def _render(cid, params: Params) -> np.ndarray:
-    """One ``(height, width, 3)`` uint8 RGB frame from the fixed camera (tiny renderer: works headless)."""
-    view = p.computeViewMatrixFromYawPitchRoll(list(params.camera_target), params.camera_distance,
-                                               params.camera_yaw_deg, params.camera_pitch_deg, 0.0, 2,
-                                               physicsClientId=cid)
+@dataclass(frozen=True)
+class Camera:
+    """Where the rendered frames look from: ``target`` (3,) m in W, ``distance`` m, ``yaw_deg`` and
+    ``pitch_deg`` in PyBullet's convention (the eye lies along (sin yaw, -cos yaw) from the target)."""
+
+    target: tuple[float, float, float]
+    distance: float
+    yaw_deg: float
+    pitch_deg: float
+
+
+def scene_camera(scene, X_WO_start, X_WO_goal, com_O, swing_deg: float = 35.0) -> Camera:
+    """The camera for a scene's frames: from the far side of the table from the robot, so that its torso
+    and arms are behind the object, not in front of it (a fixed camera behind the robot lost the object
+    behind the torso in Exp. 3), swung by ``swing_deg`` toward the side the object moves to, and far
+    enough to frame the table. Aimed at the middle of the start's and the goal's CoM, 0.1 m up."""
+    c0, c1 = se3.transform_points(X_WO_start, com_O), se3.transform_points(X_WO_goal, com_O)
+    target = (c0 + c1) / 2
+    away = target[:2] - scene.base_transform()[:2, 3]
+    move = c1[:2] - c0[:2]
+    side = 1.0 if away[0] * move[1] - away[1] * move[0] >= 0 else -1.0
+    phi = math.atan2(away[1], away[0]) + side * math.radians(swing_deg)
+    return Camera((float(target[0]), float(target[1]), float(target[2]) + 0.1),
+                  0.9 + 0.8 * float(max(scene.table.size)), math.degrees(phi) + 90.0, -35.0)
+
+
+def _add_goal_footprint(mesh, X_WO_goal, cid) -> None:
+    """A gold plate 1 mm thick on the table where the goal's convex footprint lies (visual only)."""
+    from scipy.spatial import ConvexHull
+
+    xy = se3.transform_points(X_WO_goal, np.asarray(mesh.vertices))[:, :2]
+    ring = xy[ConvexHull(xy).vertices]
+    n = len(ring)
+    v = np.concatenate([np.c_[ring, np.full(n, 2e-4)], np.c_[ring, np.full(n, 1.2e-3)]])
+    tri = [(0, i + 1, i) for i in range(1, n - 1)] + [(n, n + i, n + i + 1) for i in range(1, n - 1)]
+    tri += [(i, (i + 1) % n, n + (i + 1) % n) for i in range(n)] + [(i, n + (i + 1) % n, n + i) for i in range(n)]
+    vis = p.createVisualShape(p.GEOM_MESH, vertices=v.tolist(), indices=np.asarray(tri).ravel().tolist(),
+                              rgbaColor=[1.0, 0.75, 0.1, 1.0], physicsClientId=cid)
+    p.createMultiBody(0.0, -1, vis, physicsClientId=cid)
+
+
+def _render(cid, params: Params, camera: Camera) -> np.ndarray:
+    """One ``(height, width, 3)`` uint8 RGB frame from ``camera`` (tiny renderer: works headless)."""
+    view = p.computeViewMatrixFromYawPitchRoll(list(camera.target), camera.distance, camera.yaw_deg,
+                                               camera.pitch_deg, 0.0, 2, physicsClientId=cid)
     proj = p.computeProjectionMatrixFOV(50.0, params.width / params.height, 0.05, 10.0, physicsClientId=cid)
     img = p.getCameraImage(params.width, params.height, view, proj, renderer=p.ER_TINY_RENDERER,
                            physicsClientId=cid)[2]
@@ -1716,6 +1754,7 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
             np.savez_compressed(f, frames=np.stack(ex.frames))
     elif frames_path.exists():
         frames_path.unlink()
+    stagelog.log_execution(metrics, ex.log)
     return ex
 
 

@@ -54,7 +54,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from stages import artifacts, mpc, poses, se3, stability
+from stages import artifacts, mpc, poses, se3, stability, stagelog
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -887,4 +887,5 @@ def run(scene_path, analysis_dir, sample_dir, out_dir, params: Params, producer:
                           artifacts.make_meta("catches", meta_params, inputs, producer))
     artifacts.write_json(out / "graph.json", graph.summary, artifacts.make_meta("graph", meta_params, inputs, producer))
     artifacts.write_timings(out / "graph.json", graph.timings)
+    stagelog.log_graph(graph.summary, graph.edges)
     return graph

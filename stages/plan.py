@@ -51,7 +51,7 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from stages import artifacts, diagnosis, mpc, se3, transit
+from stages import artifacts, diagnosis, mpc, se3, stagelog, transit
 from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
@@ -702,5 +702,6 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
             s[key.replace("pose", "X_WO")] = se3.columns_from_matrix(ctx.X_WO[s[key]])
     artifacts.write_json(out_path, plan, meta)
     artifacts.write_timings(out_path, {"plan": elapsed})
+    stagelog.log_plan(plan)
     plan["time"] = elapsed
     return plan

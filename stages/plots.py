@@ -214,10 +214,11 @@ def show_trajectories(traj_dir_or_file: str | Path, png: str | Path, f_max: floa
 def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Path | None = None) -> None:
     """Fig. 10b with the chosen path, and a storyboard of the plan's object poses over the table.
 
-    Left: every graph node at its pose's CoM (grasps of one pose on a small ring around it; SP red,
-    USP blue, free nodes grey), regrasp edges yellow, pivot red, tumble blue, the plan's path black.
+    Left: the explored lattice, faint (each pose with a grasp at its CoM, a line per pair of poses a
+    feasible pivot or tumble joins), the plan's path over it in bold (each step coloured by its
+    primitive: pivot red, tumble blue, a regrasp a yellow diamond), the start and the goal.
     Right: the object's footprint at each pose of the plan (light to dark in plan order), the pivot
-    vertices used, obstacles, the start and the goal.
+    vertices used, obstacles, the start, the plan's end and the goal's footprint (dashed).
     """
     from stages import se3
 
@@ -231,17 +232,7 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     com = np.asarray(summary["com"])
     X = se3.matrix_from_columns(ps.columns)
     p = se3.transform_points(X, com)[:, :2]
-    # Node positions: grasps on a ring of radius 1.2 cm around their pose, catches on one of 0.6 cm,
-    # free nodes at the centre.
     pose = nodes["pose_id"]
-    rank = np.zeros(len(nodes))
-    order = np.lexsort((nodes["node_id"], pose))
-    counts = np.bincount(pose, minlength=len(ps))
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rank[order] = np.arange(len(order)) - start[pose[order]]
-    ang = 2 * np.pi * rank / np.maximum(counts[pose], 1)
-    ring = np.select([nodes["kind"] == "grasp", nodes["kind"] == "catch"], [0.012, 0.006], 0.0)
-    xy = p[pose] + ring[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(16, 7.5))
     sx, sy = scene.table.size
@@ -254,16 +245,13 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
             elif ob.kind == "cylinder":
                 a_.add_patch(plt.Circle(ob.X_WOb[:2, 3], ob.radius, fc="0.5", ec="k"))
     ok = edges["status"] == "ok"
-    for prim, colour, lw in (("regrasp", "gold", 0.3), ("pivot", "tab:red", 0.4), ("tumble", "tab:blue", 0.8)):
-        m = ok & (edges["primitive"] == prim)
-        segs = np.stack([xy[edges["node_a"][m]], xy[edges["node_b"][m]]], 1)
-        ax.add_collection(LineCollection(segs, colors=colour, lw=lw, alpha=0.6, label=f"{prim} ({m.sum()})"))
-    colour = np.where(nodes["kind"] == "free", "0.4", np.where(nodes["support"] == "SP", "tab:red", "tab:blue"))
-    ax.scatter(xy[:, 0], xy[:, 1], s=3, c=colour, zorder=3)
+    _draw_lattice(ax, p, pose, edges, ok)
     path = plan.get("nodes", [])
-    if path:
-        ax.plot(xy[path, 0], xy[path, 1], c="k", lw=2.2, zorder=4, label="plan")
-    ax.set_title(f"graph: {len(nodes)} nodes, {ok.sum()} edges; plan {plan['status']}")
+    goal_pose = _goal_pose(b)
+    _draw_plan_path(ax, p, pose[np.asarray(path, dtype=int)], plan.get("steps", []))
+    if goal_pose is not None:
+        ax.scatter(*p[goal_pose], s=260, marker="*", c="gold", ec="k", lw=1.2, zorder=6, label="goal")
+    ax.set_title(f"graph: {len(nodes)} nodes, {ok.sum()} edges (faint); plan {plan['status']} (bold)")
     ax.legend(loc="upper left", fontsize=8)
 
     hull2 = mesh.convex_hull.vertices
@@ -291,8 +279,12 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
             vpos = se3.transform_points(Xa, np.asarray([hull_vertex(b, s["vertex"])]))[0]
             ax2.scatter(*vpos[:2], marker="o", s=18, c="k", zorder=4)
     if uniq:
-        for Xi, label, m in ((uniq[0], "start", "*"), (uniq[-1], "end", "X")):
-            ax2.scatter(*se3.transform_points(Xi, com)[:2], s=160, marker=m, c="gold", ec="k", zorder=5, label=label)
+        for Xi, label, m in ((uniq[0], "start", "o"), (uniq[-1], "end", "X")):
+            ax2.scatter(*se3.transform_points(Xi, com)[:2], s=120, marker=m, c="w", ec="k", zorder=5, label=label)
+    if goal_pose is not None:
+        v = se3.transform_points(X[goal_pose], hull2)[:, :2]
+        ax2.add_patch(plt.Polygon(v[ConvexHull(v).vertices], fill=False, ec="goldenrod", lw=2, ls="--", zorder=5))
+        ax2.scatter(*p[goal_pose], s=260, marker="*", c="gold", ec="k", lw=1.2, zorder=6, label="goal")
     c = plan.get("counts", {})
     ax2.set_title(f"plan: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} tumbles, {c.get('regrasp', 0)} regrasps "
                   "(black dots: pivot vertices)")
@@ -307,6 +299,46 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     _save(fig, png)
 
 
+def _draw_lattice(ax, p: np.ndarray, pose: np.ndarray, edges, ok: np.ndarray) -> None:
+    """The explored lattice, faint: one line per pair of poses that a feasible pivot or tumble joins
+    (whatever the grasp) and a dot per pose with a grasp, so that the plan drawn over it stays readable.
+
+    p : (P, 2) float m, each pose's CoM in W; pose : (N,) int, each node's pose.
+    """
+    for prim, colour in (("pivot", (0.93, 0.72, 0.72)), ("tumble", (0.72, 0.78, 0.95))):
+        m = ok & (edges["primitive"] == prim)
+        pairs = np.unique(np.sort(np.stack([pose[edges["node_a"][m]], pose[edges["node_b"][m]]], 1), axis=1), axis=0)
+        segs = np.stack([p[pairs[:, 0]], p[pairs[:, 1]]], 1) if len(pairs) else np.zeros((0, 2, 2))
+        ax.add_collection(LineCollection(segs, colors=[colour], lw=0.6, zorder=1,
+                                         label=f"{prim}: {m.sum()} edges, {len(pairs)} pose pairs"))
+    used = np.unique(pose)
+    ax.scatter(p[used, 0], p[used, 1], s=4, c="0.6", zorder=2, lw=0, label=f"{len(used)} poses")
+
+
+def _draw_plan_path(ax, p: np.ndarray, pose_path: np.ndarray, steps: list) -> None:
+    """The plan's poses joined in order, bold, each step coloured by its primitive; a regrasp (same pose)
+    as a diamond."""
+    colours = {"pivot": "tab:red", "tumble": "tab:blue", "regrasp": "goldenrod"}
+    if not len(pose_path):
+        return
+    for i, s in enumerate(steps[: len(pose_path) - 1]):
+        a, b = p[pose_path[i]], p[pose_path[i + 1]]
+        c = colours.get(s.get("primitive"), "k")
+        if s.get("primitive") == "regrasp":
+            ax.scatter(*a, s=70, marker="D", c=c, ec="k", zorder=6)
+        else:
+            ax.plot([a[0], b[0]], [a[1], b[1]], c=c, lw=3.5, zorder=4, solid_capstyle="round")
+    ax.plot(p[pose_path, 0], p[pose_path, 1], c="k", lw=0.8, zorder=5, marker="o", ms=3,
+            label="plan (red pivot, blue tumble, diamond regrasp)")
+    ax.scatter(*p[pose_path[0]], s=120, marker="o", c="w", ec="k", zorder=6, label="start")
+
+
+def _goal_pose(build_dir: Path) -> int | None:
+    """The goal's pose id in the sample (``sample.json``), or None when the goal has no pose."""
+    goal = artifacts.read_json(Path(build_dir) / "sample" / "sample.json", "sample").get("goal", {})
+    return int(goal["pose_id"]) if goal.get("status") == "ok" and goal.get("pose_id", -1) >= 0 else None
+
+
 def hull_vertex(build_dir: Path, vertex_id: int) -> np.ndarray:
     """Position ``(3,)`` in O of hull corner ``vertex_id`` of an analysis."""
     hull = artifacts.read_table(Path(build_dir) / "analysis" / "hull.parquet", "hull")
@@ -315,8 +347,10 @@ def hull_vertex(build_dir: Path, vertex_id: int) -> np.ndarray:
 
 
 def show_execution(run_dir: str | Path, png: str | Path, gif: str | Path | None = None) -> None:
-    """Fig. 15-18: a storyboard of the frames PyBullet rendered during ``pivot execute`` (PNG) and an
-    animated GIF of them; plus the object's tracking error and pivot slip over time under the frames."""
+    """Fig. 15-18: a storyboard of the frames PyBullet rendered during ``pivot execute`` (PNG; the goal's
+    footprint is the gold plate on the table, the camera chosen from the scene: ``stages.execute.scene_camera``)
+    and an animated GIF of them at ``GIF_SPEEDUP`` x real time; plus the object's tracking error and pivot
+    slip over time under the frames."""
     from PIL import Image
 
     d = Path(run_dir)
@@ -349,7 +383,18 @@ def show_execution(run_dir: str | Path, png: str | Path, gif: str | Path | None 
     if gif is not None:
         images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
         with artifacts.atomic_path(gif) as tmp:
-            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=250, loop=0)
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                           duration=gif_frame_ms(float(t[-1] - t[0]), k), loop=0)
+
+
+#: The execution GIF plays the motion this many times faster than real time.
+GIF_SPEEDUP = 8.0
+
+
+def gif_frame_ms(duration: float, frames: int) -> int:
+    """Milliseconds per GIF frame so that ``frames`` spread over ``duration`` s of motion play at
+    ``GIF_SPEEDUP`` x real time (between 40 ms, what viewers honour, and 1 s)."""
+    return int(np.clip(round(1000.0 * duration / max(frames - 1, 1) / GIF_SPEEDUP), 40, 1000))
 
 
 def show_benchmark_rates(groups: list[tuple[str, dict]], png: str | Path) -> None:

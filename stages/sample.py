@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import artifacts, poses, se3, stability
+from stages import artifacts, poses, se3, stability, stagelog
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -513,4 +513,5 @@ def run(scene_path: str | Path, analysis_dir: str | Path, out_dir: str | Path, p
     artifacts.write_json(out / "sample.json", result.summary, artifacts.make_meta("sample", meta_params, inputs,
                                                                                    producer))
     artifacts.write_timings(out / "sample.json", result.timings)
+    stagelog.log_sample(result.summary, result.rejects)
     return result

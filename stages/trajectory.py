@@ -91,7 +91,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from stages import artifacts, mpc, poses, se3, stability, transit
+from stages import artifacts, mpc, poses, se3, stability, stagelog, transit
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.graph import Params as GraphParams
@@ -1236,4 +1236,5 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
         out.unlink(missing_ok=True)
     artifacts.write_json(out.with_suffix(".json"), stats, artifacts.make_meta("mpc", meta_params, inputs, producer))
     artifacts.write_timings(out.with_suffix(".json"), {"mpc": time.perf_counter() - t0})
+    stagelog.log_trajectories(stats, cols.get("primitive") if stats["status"] == "ok" else None)
     return stats

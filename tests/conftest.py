@@ -84,3 +84,20 @@ def small_build(tmp_path_factory):
     graph.run(scene, b / "analysis", b / "sample", b / "graph", graph.Params())
     plan.run(scene, b / "analysis", b / "sample", b / "graph", b / "plan.json", plan.Params())
     return scene, b
+
+
+@pytest.fixture(scope="session")
+def reference_chain(tmp_path_factory):
+    """``reference_chain(name)``: the whole chain of ``data/scenes/<name>.json`` with the default
+    parameters, run once per session (tests.golden.run_chain) and shared by every test that reads it."""
+    from tests.golden import run_chain
+
+    root = tmp_path_factory.mktemp("reference")
+    chains = {}
+
+    def get(name: str):
+        if name not in chains:
+            chains[name] = run_chain(REPO / "data" / "scenes" / f"{name}.json", root)
+        return chains[name]
+
+    return get

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages import analyze, artifacts, graph, plan, sample, se3
+from stages import artifacts, graph, plan, sample, se3
 from stages.objectmodel import load_object_model
 from stages.scene import PlacementSpec, load_scene
 
@@ -55,35 +55,32 @@ EXP3_NO_PLAN = pytest.mark.xfail(strict=True, reason=(
 
 
 class Builds:
-    """Analysis once, sample + graph once per scene, each plan (scene, ablation) once."""
+    """Each scene's chain with the full planner from the session's ``reference_chain`` (the golden
+    test's, run once), and each ablation's plan once, beside it."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, reference):
         self.root = root
-        self.analysis = root / "analysis"
-        scene = load_scene(SCENES / f"{EXPERIMENTS[0]}.json")
-        analyze.run(scene.object.mesh_path, self.analysis, scene.object.mass, analyze.Params())
+        self.reference = reference
+        self.analysis = reference(EXPERIMENTS[0]).analysis
         self.model, _ = load_object_model(self.analysis)
-        self._built: set = set()
         self._plans: dict = {}
 
     def scene(self, name: str) -> Path:
         return SCENES / f"{name}.json"
 
     def build(self, name: str) -> Path:
-        b = self.root / name
-        if name not in self._built:
-            sample.run(self.scene(name), self.analysis, b / "sample", sample.Params())
-            graph.run(self.scene(name), self.analysis, b / "sample", b / "graph", graph.Params())
-            self._built.add(name)
-        return b
+        return self.reference(name).build
 
     def plan(self, name: str, **ablation) -> dict:
         key = (name, tuple(sorted(ablation.items())))
         if key not in self._plans:
             b = self.build(name)
             tag = "_".join(k for k, v in sorted(ablation.items()) if v) or "full"
-            self._plans[key] = plan.run(self.scene(name), self.analysis, b / "sample", b / "graph",
-                                        b / f"plan_{tag}.json", plan.Params(**ablation))
+            if tag == "full":
+                self._plans[key] = artifacts.read_json(b / "full" / "plan.json", "plan")
+            else:
+                self._plans[key] = plan.run(self.scene(name), self.analysis, b / "sample", b / "graph",
+                                            self.root / name / f"plan_{tag}.json", plan.Params(**ablation))
         return self._plans[key]
 
     def goal(self, name: str) -> np.ndarray:
@@ -92,8 +89,8 @@ class Builds:
 
 
 @pytest.fixture(scope="module")
-def builds(tmp_path_factory) -> Builds:
-    return Builds(tmp_path_factory.mktemp("experiments"))
+def builds(tmp_path_factory, reference_chain) -> Builds:
+    return Builds(tmp_path_factory.mktemp("experiments"), reference_chain)
 
 
 def _pose(cols: dict) -> np.ndarray:
@@ -237,14 +234,7 @@ def test_exp3_tumbles_into_usp_onto_a_catch_and_regrasps_there(builds):
 def test_exp3_regrasps_in_usp_in_physics(builds):
     """Exp. 3 end to end in PyBullet: the tumble into USP, the catch, the regrasp in USP one ball at a
     time and the pivot back into SP bring the piano to the goal, with no fall and no collision."""
-    from stages import execute, trajectory
-
-    b = builds.build("exp3_obstacle")
-    builds.plan("exp3_obstacle")
-    scene = builds.scene("exp3_obstacle")
-    assert trajectory.run(scene, builds.analysis, b / "plan_full.json", b / "trajectories.parquet",
-                          trajectory.Params())["status"] == "ok"
-    m = execute.run(scene, builds.analysis, b / "trajectories.parquet", b / "exec", execute.Params()).metrics
+    m = artifacts.read_json(builds.build("exp3_obstacle") / "full" / "execution.json", "execution_metrics")
     assert m["success"] and m["failures"] == [], {k: m[k] for k in ("failures", "final_position_error",
                                                                     "final_yaw_error_deg", "max_ball_force")}
     assert not m["fell"] and not m["collision"] and m["released"] and m["at_rest"]
