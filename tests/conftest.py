@@ -52,11 +52,12 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
 
 
-def write_scene(tmp_path: Path, name: str = "small", **changes) -> Path:
-    """A copy of the default scene with absolute paths and ``changes`` applied (dotted keys)."""
+def write_scene(tmp_path: Path, name: str = "small", base: str = "default", **changes) -> Path:
+    """A copy of the scene ``data/scenes/<base>.json`` with absolute paths and ``changes`` applied
+    (dotted keys)."""
     import json
 
-    data = json.loads((REPO / "data" / "scenes" / "default.json").read_text())
+    data = json.loads((REPO / "data" / "scenes" / f"{base}.json").read_text())
     data["object"]["mesh"] = str(REPO / "data" / "objects" / "toy_piano.obj")
     data["robot"]["urdf"] = str(REPO / "data" / "robots" / "sda5f.urdf")
     data["name"] = name

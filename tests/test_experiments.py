@@ -108,6 +108,25 @@ def _com(builds: Builds, X: np.ndarray) -> np.ndarray:
     return se3.transform_points(X, builds.model.com)
 
 
+@pytest.mark.parametrize(("name", "dx", "dyaw"), [(n, dx, dyaw) for n in ("exp1_reach", "exp2_rotate")
+                                                   for dx, dyaw in ((0.02, 0), (-0.02, 0), (0, 10), (0, -10))])
+def test_an_experiment_still_plans_with_its_goal_moved_2_cm_or_10_deg(builds, tmp_path, name, dx, dyaw):
+    """Reaching the goal is the planner's property, not the lattice's luck (issue 14): Exp. 1 and 2
+    plan to their goal moved 2 cm along the table's x or turned 10 deg either way."""
+    from tests.conftest import write_scene
+
+    g = load_scene(SCENES / f"{name}.json").goal
+    path = write_scene(tmp_path, f"{name}-moved", base=name,
+                       **{"goal.xy": [g.xy[0] + dx, g.xy[1]], "goal.yaw_deg": g.yaw_deg + dyaw})
+    sample.run(path, builds.analysis, tmp_path / "sample", sample.Params())
+    graph.run(path, builds.analysis, tmp_path / "sample", tmp_path / "graph", graph.Params())
+    p = plan.run(path, builds.analysis, tmp_path / "sample", tmp_path / "graph", tmp_path / "plan.json",
+                 plan.Params())
+    assert p["status"] == "ok", (p["status"], p.get("reason"))
+    X, _ = sample.placement_pose(load_scene(path).goal, builds.model, "goal")
+    np.testing.assert_allclose(_pose(p["steps"][-1]["X_WO_to"]), X, atol=1e-6)
+
+
 def test_scenes_load_and_keep_the_lattice_small():
     for name in EXPERIMENTS:
         scene = load_scene(SCENES / f"{name}.json")
