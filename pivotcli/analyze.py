@@ -9,6 +9,7 @@ import typer
 
 from pivotcli.common import cli_errors, info, step
 from stages import analyze as stage
+from stages.artifacts import output_lock
 from stages.errors import InputError
 from stages.scene import load_scene
 
@@ -53,7 +54,7 @@ def analyze(
             mesh, mass, scale = spec.mesh_path, spec.mass, spec.scale
         elif mesh is None:
             raise InputError("pivot analyze: give a MESH file or --scene SCENE")
-        with step(f"analysing {mesh.name}"):
+        with output_lock(out), step(f"analysing {mesh.name}"):
             result = stage.run(mesh, out, mass, params, scale=scale, producer=f"analyze {mesh}")
     c = result.summary["counts"]
     info(

@@ -30,13 +30,15 @@ def execute(
     """Run the trajectories in PyBullet: the object moves only through its contacts (§6)."""
     from dataclasses import replace
 
-    from stages import execute as stage
+    from pivotcli.common import quiet_import
+    from stages.artifacts import output_lock
 
+    stage = quiet_import("stages.execute")
     b = build or Path("build") / scene.stem
     trajectories = trajectories or b / "full" / "trajectories.parquet"
     out = out or trajectories.parent
     params = replace(stage.Params(), seed=seed, randomize=randomize)
-    with cli_errors():
+    with cli_errors(), output_lock(out):
         res = stage.run(scene, b / "analysis", trajectories, out, params, frames=frames, gui=gui,
                         producer=f"execute {scene}")
     m = res.metrics

@@ -10,6 +10,7 @@ import typer
 from pivotcli.common import cli_errors, info, step
 from stages import graph as graph_stage
 from stages import plan as plan_stage
+from stages.artifacts import output_lock
 
 
 def _dirs(scene: Path, build: Path | None) -> Path:
@@ -22,7 +23,7 @@ def graph(
 ) -> None:
     """Build the grasp-augmented graph: pivot, regrasp and tumble edges with their motion checks."""
     b = _dirs(scene, build)
-    with cli_errors(), step("building the graph"):
+    with cli_errors(), output_lock(b / "graph"), step("building the graph"):
         g = graph_stage.run(scene, b / "analysis", b / "sample", b / "graph", graph_stage.Params(),
                             producer=f"graph {scene}")
     e = g.summary["edges"]
@@ -44,7 +45,7 @@ def plan(
     b = _dirs(scene, build)
     out = out or b / "plan.json"
     params = plan_stage.Params(no_regrasp=no_regrasp, no_tumble=no_tumble, no_usp=no_usp, check_mpc=not no_mpc)
-    with cli_errors(), step("planning"):
+    with cli_errors(), output_lock(out), step("planning"):
         p = plan_stage.run(scene, b / "analysis", b / "sample", b / "graph", out, params, producer=f"plan {scene}")
     removed = len(p["log"])
     if p["status"] == "infeasible":
@@ -79,7 +80,7 @@ def mpc(
     out = out or b / "trajectories.parquet"
     params = trajectory.Params()
     params = replace(params, mpc=replace(params.mpc, horizon=horizon, alpha=alpha, beta=beta))
-    with cli_errors(), step("computing trajectories"):
+    with cli_errors(), output_lock(out), step("computing trajectories"):
         stats = trajectory.run(scene, b / "analysis", plan_file or b / "plan.json", out, params,
                                producer=f"mpc {scene}")
     if stats["status"] != "ok":

@@ -9,6 +9,7 @@ import typer
 
 from pivotcli.common import cli_errors, info, step
 from stages import sample as stage
+from stages.artifacts import output_lock
 
 
 def sample(
@@ -21,7 +22,7 @@ def sample(
         name = scene.stem
         analysis = analysis or Path("build") / name / "analysis"
         out = out or Path("build") / name / "sample"
-        with step("sampling poses and grasps"):
+        with output_lock(out), step("sampling poses and grasps"):
             result = stage.run(scene, analysis, out, stage.Params(), producer=f"sample {scene}")
     s = result.summary
     info(f"{name}: {s['poses']['ok']} poses ({s['poses_sp']} SP, {s['poses_usp']} USP), "

@@ -140,7 +140,7 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation, Slerp
 from trimesh.intersections import slice_faces_plane
 
-from stages import artifacts, se3
+from stages import artifacts, provenance, se3
 from stages.analyze import load_mesh
 from stages.artifacts import Field, atomic_path
 from stages.errors import InputError
@@ -1355,6 +1355,7 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     model, _ = load_object_model(a)
     X_goal, _ = placement_pose(scene.goal, model, "goal")
     table = artifacts.read_table(trajectories_path, "trajectories", required=[f.name for f in TRAJECTORY_FIELDS])
+    provenance.check_made_from(trajectories_path, table.meta, scene, a)
     ex = simulate(scene, a / "object.ply", float(summary["mass"]), np.asarray(summary["com"], dtype=float),
                   np.asarray(summary["inertia"], dtype=float), table.columns, X_goal, params, gui=gui, frames=frames)
     # Two figures for the report: the CoM's error along x to the goal (Table 2 measures reach along x)
@@ -1371,14 +1372,14 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     cols = {k: (list(v) if np.ndim(v) == 2 else v) for k, v in ex.log.items()}  # joints as list columns
     artifacts.write_table(out / "execution.parquet", cols, LOG_FIELDS,
                           artifacts.make_meta("execution", meta_params, inputs, producer))
-    artifacts.write_json(out / "execution.json", metrics,
-                         artifacts.make_meta("execution_metrics", meta_params, inputs, producer))
-    artifacts.write_timings(out / "execution.json", {"wall": ex.timings["total_s"], **{
-        k: v for k, v in ex.timings.items() if k != "total_s"}})
-    frames_path = out / "frames.npz"
+    frames_path = out / "frames.npz"  # before the target (execution.json), which vouches for it
     if ex.frames:
         with atomic_path(frames_path) as tmp, open(tmp, "wb") as f:
             np.savez_compressed(f, frames=np.stack(ex.frames))
     elif frames_path.exists():
         frames_path.unlink()
+    artifacts.write_json(out / "execution.json", metrics,
+                         artifacts.make_meta("execution_metrics", meta_params, inputs, producer))
+    artifacts.write_timings(out / "execution.json", {"wall": ex.timings["total_s"], **{
+        k: v for k, v in ex.timings.items() if k != "total_s"}})
     return ex

@@ -91,7 +91,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from stages import artifacts, mpc, poses, se3, stability, transit
+from stages import artifacts, mpc, poses, provenance, se3, stability, transit
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.graph import Params as GraphParams
@@ -1223,17 +1223,19 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
     t0 = time.perf_counter()
     scene = load_scene(scene_path)
     plan = artifacts.read_json(plan_path, "plan")
+    provenance.check_made_from(plan_path, plan["meta"], scene, analysis_dir)
     if plan["status"] == "infeasible":
         raise InputError(f"{plan_path}: the plan is infeasible ({plan.get('reason')}); nothing to execute")
     cols, stats = compute(scene, analysis_dir, plan, params)
     meta_params = {**asdict(params), "N_p": params.mpc.horizon, "dt": params.mpc.dt, "alpha": params.mpc.alpha,
                    "beta": params.mpc.beta}
-    inputs = {"scene": scene_path, "plan": plan_path}
+    inputs = {"scene": scene_path, "plan": plan_path, **provenance.analysis_inputs(analysis_dir)}
     out = Path(out_path)
-    if stats["status"] == "ok":
-        artifacts.write_table(out, cols, FIELDS, artifacts.make_meta("trajectories", meta_params, inputs, producer))
-    else:  # no trajectories for this plan: an older file would pass for them
+    # The target (trajectories.parquet, what Make tracks) goes last, after the summary it vouches for.
+    if stats["status"] != "ok":  # no trajectories for this plan: an older file would pass for them
         out.unlink(missing_ok=True)
     artifacts.write_json(out.with_suffix(".json"), stats, artifacts.make_meta("mpc", meta_params, inputs, producer))
+    if stats["status"] == "ok":
+        artifacts.write_table(out, cols, FIELDS, artifacts.make_meta("trajectories", meta_params, inputs, producer))
     artifacts.write_timings(out.with_suffix(".json"), {"mpc": time.perf_counter() - t0})
     return stats
