@@ -17,7 +17,7 @@ SCENE ?= default
 SCENE_FILE := data/scenes/$(SCENE).json
 B := build/$(SCENE)
 # Code every stage uses: a change here reruns everything.
-SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
+SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/provenance.py stages/se3.py stages/tol.py
 
 .PHONY: help install demo test lint bench benchmark analysis sample plan mpc execute reproduce golden clean
 
@@ -34,7 +34,7 @@ $(INSTALLED): pyproject.toml
 install: $(INSTALLED) ## create .venv and install pivot with its dev tools
 
 # ---------------------------------------------------------------------------------------- stages
-$(B)/analysis/analysis.json: $(SCENE_FILE) $(wildcard data/objects/*) stages/analyze.py stages/scene.py $(SHARED) | $(INSTALLED)
+$(B)/analysis/analysis.json: $(SCENE_FILE) $(wildcard data/objects/*) stages/analyze.py stages/meshfile.py stages/scene.py $(SHARED) | $(INSTALLED)
 	$(PIVOT) analyze --scene $(SCENE_FILE) --out $(B)/analysis
 
 $(B)/analysis.png: $(B)/analysis/analysis.json stages/plots.py | $(INSTALLED)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Annotated
 
 import typer
+from typer import rich_utils
 
 from pivotcli import analyze, benchmark, diff, execute, plan, sample, show
 from pivotcli.common import configure
@@ -21,6 +22,24 @@ app = typer.Typer(
     add_completion=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
+
+
+_format_error = rich_utils.rich_format_error
+
+
+def _format_error_unwrapped(e) -> None:
+    """typer's usage-error box, as wide as its message, so that its last line names the option or
+    argument (at 80 columns "Invalid value for '--mass': ..." wrapped onto "string as a number")."""
+    width = max((len(line) for line in e.format_message().splitlines()), default=0) + 4
+    saved = rich_utils.MAX_WIDTH
+    rich_utils.MAX_WIDTH = max(width, saved or 80)
+    try:
+        _format_error(e)
+    finally:
+        rich_utils.MAX_WIDTH = saved
+
+
+rich_utils.rich_format_error = _format_error_unwrapped
 
 
 def _version(value: bool) -> None:

@@ -39,24 +39,28 @@ def cli_errors() -> Iterator[None]:
 
 
 def quiet_import(name: str):
-    """Import module ``name`` with the process' stdout silenced: PyBullet prints a banner from C on
-    import, which would add a line to every message of a command that uses it."""
+    """Import module ``name`` with the process' stdout and stderr silenced: PyBullet prints a banner
+    from C on import (to stderr), which would add a line to every message of a command that uses it."""
     import ctypes
     import importlib
     import os
 
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
     try:
         with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 1)
+            for fd in saved:
+                os.dup2(null.fileno(), fd)
             try:
                 return importlib.import_module(name)
             finally:
-                ctypes.CDLL(None).fflush(None)  # the banner waits in C's buffer when stdout is a pipe
-                os.dup2(saved, 1)
+                ctypes.CDLL(None).fflush(None)  # C's buffered output goes to /dev/null, not after
+                for fd, copy in saved.items():
+                    os.dup2(copy, fd)
     finally:
-        os.close(saved)
+        for copy in saved.values():
+            os.close(copy)
 
 
 @contextlib.contextmanager

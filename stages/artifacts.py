@@ -205,8 +205,9 @@ def write_table(path: str | Path, columns: Mapping[str, np.ndarray], fields: lis
             md["frame"] = f.frame
         schema_fields.append(pa.field(f.name, arr.type, metadata=md))
         arrays.append(arr)
-    schema = pa.schema(schema_fields, metadata={k: json.dumps(v, sort_keys=True) for k, v in meta.items()})
-    table = pa.Table.from_arrays(arrays, schema=schema)
+    table = pa.Table.from_arrays(arrays, schema=pa.schema(schema_fields))
+    meta = {**meta, "content": _table_digest(table)}
+    table = table.replace_schema_metadata({k: json.dumps(v, sort_keys=True) for k, v in meta.items()})
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, compression="zstd", write_statistics=False)
 
@@ -230,6 +231,8 @@ def read_table(path: str | Path, artifact: str | None = None, required: list[str
     if missing:
         raise ArtifactError(f"{path}: wrong schema for '{meta['artifact']}': missing columns {missing}")
     _check_columns(path, table, SCHEMAS.get(meta["artifact"], {}))
+    if meta.get("content") != _table_digest(table):
+        raise ArtifactError(f"{path}: its content does not match its sha256 (edited by hand?); rerun its stage")
     cols = {}
     for name in table.column_names:
         col = table.column(name)
@@ -330,6 +333,27 @@ def read_json(path: str | Path, artifact: str | None = None) -> dict:
     if data["meta"].get("content") != _digest(body):
         raise ArtifactError(f"{path}: its content does not match its sha256 (edited by hand?); rerun its stage")
     return data
+
+
+def _table_digest(table: pa.Table) -> str:
+    """sha256 of a table's columns: names, types, null masks and values (not its metadata)."""
+    h = hashlib.sha256()
+    for name in table.column_names:
+        col = table.column(name).combine_chunks()
+        h.update(f"{name}:{len(col)}:{col.null_count};".encode())
+        while pa.types.is_list(col.type) or pa.types.is_large_list(col.type):  # Parquet renames list items
+            lengths = col.value_lengths().fill_null(-1).to_numpy(zero_copy_only=False).astype(np.int64)
+            h.update(b"list;" + lengths.tobytes())
+            col = col.flatten()
+        h.update(f"{col.type};".encode())
+        if col.null_count:  # the mask, then the values that are there
+            h.update(col.is_null().to_numpy(zero_copy_only=False).tobytes())
+            col = col.drop_null()
+        if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+            h.update("\0".join(col.to_pylist()).encode())
+        elif not pa.types.is_null(col.type):
+            h.update(np.ascontiguousarray(col.to_numpy(zero_copy_only=False)).tobytes())
+    return h.hexdigest()
 
 
 def _digest(body: Mapping) -> str:

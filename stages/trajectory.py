@@ -93,7 +93,7 @@ from scipy.spatial.transform import Rotation
 
 from stages import artifacts, mpc, poses, provenance, se3, stability, transit
 from stages.artifacts import Field
-from stages.errors import InputError
+from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
 from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
@@ -1226,7 +1226,10 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
     provenance.check_made_from(plan_path, plan["meta"], scene, analysis_dir)
     if plan["status"] == "infeasible":
         raise InputError(f"{plan_path}: the plan is infeasible ({plan.get('reason')}); nothing to execute")
-    cols, stats = compute(scene, analysis_dir, plan, params)
+    if not plan["steps"]:
+        raise InputError(f"{plan_path}: the plan has no steps (the start is already the goal); nothing to move")
+    with about(plan_path):
+        cols, stats = compute(scene, analysis_dir, plan, params)
     meta_params = {**asdict(params), "N_p": params.mpc.horizon, "dt": params.mpc.dt, "alpha": params.mpc.alpha,
                    "beta": params.mpc.beta}
     inputs = {"scene": scene_path, "plan": plan_path, **provenance.analysis_inputs(analysis_dir)}

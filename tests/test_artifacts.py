@@ -190,6 +190,30 @@ def test_a_hand_edited_plan_step_is_refused(chain, tmp_path):
         assert "plan.json" in line and "edited" in line, line
 
 
+def test_a_hand_edited_table_is_refused(chain, tmp_path):
+    """A valid id in place of another passes the schema; the content's sha256 catches it."""
+    scene, b = _case(chain, tmp_path)
+    path = b / "graph" / "edges.parquet"
+    t = pq.read_table(path)
+    i = t.column_names.index("node_b")
+    values = t.column(i).to_pylist()
+    values[0] += 1
+    pq.write_table(t.set_column(i, t.schema.field(i), pa.array(values, type=pa.int64())), path)
+    before = _snapshot(tmp_path / "c")
+    line = _one_line_exit_2(runner.invoke(app, [str(a) for a in _command("edges", scene, b)]))
+    assert "edges.parquet: its content does not match its sha256 (edited by hand?)" in line, line
+    assert _snapshot(tmp_path / "c") == before
+
+
+def test_a_stage_writes_its_target_after_its_side_files(chain):
+    """Make takes a stage as done when its target is newer than its inputs: the side files it vouches
+    for (trajectories.json, frames.npz) are renamed into place before it."""
+    full = chain / "build" / "full"
+    assert (full / "trajectories.json").stat().st_mtime_ns <= (full / "trajectories.parquet").stat().st_mtime_ns
+    for side in ("frames.npz", "execution.parquet"):
+        assert (full / side).stat().st_mtime_ns <= (full / "execution.json").stat().st_mtime_ns
+
+
 def test_two_checkouts_at_different_paths_write_byte_identical_artifacts(tmp_path, monkeypatch):
     repo = Path(__file__).resolve().parents[1]
     built = []
@@ -253,3 +277,78 @@ def test_an_output_that_cannot_be_written_is_one_line_exit_2(tmp_path, where):
         out = tmp_path / "ro" / "analysis"
     r = runner.invoke(app, ["analyze", str(PIANO), "--out", str(out)])
     assert str(out.name) in _one_line_exit_2(r)
+
+
+@pytest.mark.parametrize("args, names", [
+    (["analyze", "--mass", "abc"], "'--mass'"),
+    (["mpc", "s.json", "--horizon", "abc"], "'--horizon'"),
+    (["sample"], "'scene'"),
+    (["analyze", "--bogus"], "--bogus"),
+    (["show", "poses", "d"], "'--scene'"),
+])
+def test_a_usage_error_keeps_typers_box_and_its_last_line_names_the_option(args, names):
+    r = runner.invoke(app, args)
+    text = [x.strip("│ ") for x in r.output.splitlines() if x.strip("│╰╭╮╯─ ")]
+    assert r.exit_code == 2 and "Usage:" in r.output, r.output
+    assert names in text[-1], r.output
+
+
+def test_ctrl_c_is_one_line_exit_130_and_leaves_no_partial_artifact(chain, tmp_path, monkeypatch):
+    """Interrupted while writing the second table: the first is complete, no temporary file stays and
+    the target (sample.json, what Make tracks) is not written, so Make reruns the stage."""
+    scene, b = _case(chain, tmp_path)
+    shutil.rmtree(b / "sample")
+    written = []
+    real = pq.write_table
+
+    def write_then_interrupt(table, where, **kw):
+        if written:
+            raise KeyboardInterrupt
+        written.append(where)
+        real(table, where, **kw)
+
+    monkeypatch.setattr(pq, "write_table", write_then_interrupt)
+    r = runner.invoke(app, ["sample", str(scene), "--analysis", str(b / "analysis"), "--out", str(b / "sample")])
+    lines = [x for x in r.output.splitlines() if x.strip()]
+    assert r.exit_code == 130 and len(lines) == 1 and "interrupted" in lines[0], r.output
+    assert sorted(p.name for p in (b / "sample").iterdir()) == ["poses.parquet"]
+    assert not (b / ".sample.lock").exists()
+
+
+def test_an_execute_error_is_one_line_without_pybullets_banner(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "pivotcli", "execute", str(tmp_path / "nope.json"), "--build",
+                        str(tmp_path / "b")], capture_output=True, text=True, cwd=tmp_path,
+                       env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    lines = [x for x in (r.stdout + r.stderr).splitlines() if x.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "nope.json" in lines[0], r.stdout + r.stderr
+
+
+def test_a_plan_whose_start_is_its_goal_is_one_line_in_mpc(tmp_path):
+    from stages import analyze, graph, plan, sample
+
+    scene = write_scene(tmp_path, "same", **{"planner.max_poses": 20, "goal.xy": [-0.18, 0.0]})
+    b = tmp_path / "build"
+    analyze.run(scene.parent / json.loads(scene.read_text())["object"]["mesh"], b / "analysis", 3.1, analyze.Params())
+    sample.run(scene, b / "analysis", b / "sample", sample.Params())
+    graph.run(scene, b / "analysis", b / "sample", b / "graph", graph.Params())
+    p = plan.run(scene, b / "analysis", b / "sample", b / "graph", b / "plan.json", plan.Params())
+    assert p["status"] == "ok" and p["steps"] == []
+    r = runner.invoke(app, ["mpc", str(scene), "--build", str(b), "--plan", str(b / "plan.json"),
+                            "--out", str(b / "t.parquet")])
+    assert "plan.json: the plan has no steps (the start is already the goal)" in _one_line_exit_2(r)
+    assert not (b / "t.parquet").exists()
+
+
+def test_a_library_error_about_a_file_is_prefixed_with_it(tmp_path):
+    from stages.errors import InputError, about
+
+    with pytest.raises(InputError, match=r"^/x/plan.json: mpc: X_WO_ref has non-finite entries$"):
+        with about("/x/plan.json"):
+            raise InputError("mpc: X_WO_ref has non-finite entries")
+    named = f"{tmp_path}/a.json: bad"
+    with pytest.raises(InputError, match=f"^{named}$"):
+        with about("/x/plan.json"):
+            raise InputError(named)
