@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 from typer import rich_utils
 
-from pivotcli import analyze, benchmark, diff, execute, plan, sample, show
+from pivotcli import analyze, benchmark, diff, execute, plan, sample, show, started
 from pivotcli.common import configure
 from stages import __version__
 
@@ -56,6 +56,7 @@ def main_options(
                                           help="Print the version and exit.")] = False,
 ) -> None:
     """Plan how a dual-arm robot moves a large object by pivoting, tumbling and regrasping."""
+    started()
     configure(verbose, quiet)
 
 

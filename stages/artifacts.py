@@ -142,7 +142,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a new file gets what the umask allows
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as e:  # e.g. a folder in the way: name the target, not the temporary file
+            raise ArtifactError(f"{path}: cannot write it ({e.strerror})") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -442,7 +445,7 @@ def _jsonable(obj):
 
 
 # --------------------------------------------------------------------------------------------- diff
-IGNORED_META = ("producer",)  # informational: names the command line, not the content
+IGNORED_META = ("producer", "content")  # the command line; the exact hash of what is compared with tolerances
 
 
 def diff_artifacts(a: str | Path, b: str | Path, rtol: float = 1e-9, atol: float = 1e-9,

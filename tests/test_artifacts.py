@@ -352,3 +352,27 @@ def test_a_library_error_about_a_file_is_prefixed_with_it(tmp_path):
     with pytest.raises(InputError, match=f"^{named}$"):
         with about("/x/plan.json"):
             raise InputError(named)
+
+
+def test_an_output_file_with_a_folder_in_its_place_is_one_line_naming_it(chain, tmp_path):
+    scene, b = _case(chain, tmp_path)
+    (b / "taken").mkdir()
+    r = runner.invoke(app, ["mpc", str(scene), "--build", str(b), "--plan", str(b / "full" / "plan.json"),
+                            "--out", str(b / "taken")])
+    assert f"{b / 'taken'}: cannot write it (Is a directory)" in _one_line_exit_2(r)
+    assert not [p for p in b.rglob("*.tmp")]
+
+
+def test_diff_ignores_the_content_hash_of_values_equal_within_tolerance(tmp_path):
+    import numpy as np
+
+    fields = [artifacts.Field("pair_id", "id"), artifacts.Field("width", "m")]
+    meta = artifacts.make_meta("widths", {}, {}, "test")
+    for name, w in (("a", 0.3), ("b", 0.3 + 1e-13)):
+        artifacts.write_table(tmp_path / f"{name}.parquet", {"pair_id": np.arange(1), "width": np.array([w])},
+                              fields, meta)
+        artifacts.write_json(tmp_path / f"{name}.json", {"width": w}, meta)
+    assert artifacts.read_table(tmp_path / "a.parquet").meta["content"] != \
+        artifacts.read_table(tmp_path / "b.parquet").meta["content"]
+    assert artifacts.diff_artifacts(tmp_path / "a.parquet", tmp_path / "b.parquet") == []
+    assert artifacts.diff_artifacts(tmp_path / "a.json", tmp_path / "b.json") == []
