@@ -5,10 +5,12 @@ Before a stage computes, it checks the chain it reads back to the scene it is gi
 analysis was made from the scene's mesh, scale and mass; the samples from this scene and this
 analysis; the graph from these samples; the plan and the trajectories from this scene and this
 analysis. A stale or foreign upstream is bad input (``ArtifactError``: one line naming both files).
+A plan's steps are also checked for what the MPC needs (:func:`check_plan_steps`).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from stages import artifacts
@@ -65,3 +67,51 @@ def check_made_from(path: str | Path, meta: dict, scene: Scene, analysis_dir: st
     """The plan or trajectories ``path`` (metadata ``meta``) were made from ``scene`` and this analysis."""
     check_analysis(analysis_dir, scene)
     artifacts.check_inputs(path, meta, {"scene": scene.path, **analysis_inputs(analysis_dir)})
+
+
+_POSE_KEYS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+_STEP_KEYS = {"pivot": ("vertex", "contacts"), "regrasp": ("support",), "tumble": ("pusher", "pusher_contact", "edge")}
+
+
+def check_plan_steps(plan_path: str | Path, plan: dict, n_vertices: int, n_contacts: int) -> None:
+    """Each step of ``plan`` is one the planner writes: a known primitive with its keys, poses of
+    finite numbers, hull vertices in ``[0, n_vertices)`` and contacts in ``[0, n_contacts)``.
+
+    A plan whose hash was forged after an edit still cannot send the MPC a ``fly`` or a pivot about
+    vertex 999; raises ``ArtifactError`` naming the file and the step.
+    """
+    def bad(k: int, what: str) -> ArtifactError:
+        return ArtifactError(f"{plan_path}: step {k}: {what}")
+
+    def index(k: int, name: str, v, n: int, lowest: int = 0) -> None:
+        if isinstance(v, bool) or not isinstance(v, int) or not lowest <= v < n:
+            raise bad(k, f"{name} {v!r} is not one of {lowest}..{n - 1}")
+
+    if not isinstance(plan.get("steps"), list):
+        raise ArtifactError(f"{plan_path}: no list of steps")
+    for k, step in enumerate(plan["steps"]):
+        prim = step.get("primitive") if isinstance(step, dict) else None
+        if prim not in _STEP_KEYS:
+            raise bad(k, f"primitive {prim!r} is not one of {', '.join(_STEP_KEYS)}")
+        missing = [key for key in ("X_WO_from", "X_WO_to", *_STEP_KEYS[prim]) if key not in step]
+        if missing:
+            raise bad(k, f"the {prim} has no {', '.join(missing)}")
+        for key in ("X_WO_from", "X_WO_to"):
+            X = step[key]
+            if not isinstance(X, dict) or not all(_finite_numbers(X.get(c)) for c in _POSE_KEYS):
+                raise bad(k, f"{key} is not a pose of finite x, y, z, qx, qy, qz, qw")
+        if prim == "pivot":
+            index(k, "vertex", step["vertex"], n_vertices)
+        if prim == "tumble":
+            index(k, "pusher_contact", step["pusher_contact"], n_contacts)
+            for v in step["edge"] if isinstance(step["edge"], list) and len(step["edge"]) == 2 else [None]:
+                index(k, "edge vertex", v, n_vertices)
+        contacts = step.get("contacts", {})
+        for arm, c in (contacts.items() if isinstance(contacts, dict) else [("contacts", contacts)]):
+            index(k, f"{arm} contact", c, n_contacts, lowest=-1)  # -1: that ball touches nothing
+
+
+def _finite_numbers(v) -> bool:
+    values = v if isinstance(v, list) else [v]
+    return bool(values) and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                                for x in values)

@@ -1228,6 +1228,9 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
         raise InputError(f"{plan_path}: the plan is infeasible ({plan.get('reason')}); nothing to execute")
     if not plan["steps"]:
         raise InputError(f"{plan_path}: the plan has no steps (the start is already the goal); nothing to move")
+    hull = artifacts.read_table(Path(analysis_dir) / "hull.parquet", "hull")
+    provenance.check_plan_steps(plan_path, plan, int((hull["kind"] == "vertex").sum()),
+                                len(artifacts.read_table(Path(analysis_dir) / "contacts.parquet", "contacts")))
     with about(plan_path):
         cols, stats = compute(scene, analysis_dir, plan, params)
     meta_params = {**asdict(params), "N_p": params.mpc.horizon, "dt": params.mpc.dt, "alpha": params.mpc.alpha,

@@ -190,6 +190,28 @@ def test_a_hand_edited_plan_step_is_refused(chain, tmp_path):
         assert "plan.json" in line and "edited" in line, line
 
 
+@pytest.mark.parametrize("edit, says", [
+    ({"primitive": "fly"}, "step 1: primitive 'fly' is not one of pivot, regrasp, tumble"),
+    ({"vertex": 999}, "step 1: vertex 999 is not one of 0..41"),
+    ({"vertex": None}, "step 1: vertex None is not one of 0..41"),
+    ({"contacts": {"left": 5000, "right": 11}}, "step 1: left contact 5000 is not one of -1..202"),
+    ({"X_WO_to": {"x": [float("nan")]}}, "step 1: X_WO_to is not a pose of finite"),
+])
+def test_a_plan_edited_with_its_hash_forged_is_refused_by_its_steps(chain, tmp_path, edit, says):
+    """An editor who also rewrites meta.content still cannot send the MPC a fly or a missing vertex."""
+    scene, b = _case(chain, tmp_path)
+    path = b / "full" / "plan.json"
+    data = json.loads(path.read_text())
+    assert data["steps"][1]["primitive"] == "pivot"
+    data["steps"][1].update(edit)
+    data["meta"]["content"] = artifacts._digest({k: v for k, v in data.items() if k != "meta"})
+    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    before = _snapshot(tmp_path / "c")
+    line = _one_line_exit_2(runner.invoke(app, [str(a) for a in _command("plan", scene, b)]))
+    assert f"{path}: {says}" in line, line
+    assert _snapshot(tmp_path / "c") == before
+
+
 def test_a_hand_edited_table_is_refused(chain, tmp_path):
     """A valid id in place of another passes the schema; the content's sha256 catches it."""
     scene, b = _case(chain, tmp_path)
