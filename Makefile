@@ -17,7 +17,7 @@ SCENE ?= default
 SCENE_FILE := data/scenes/$(SCENE).json
 B := build/$(SCENE)
 # Code every stage uses (the benchmark suite's prerequisites; the stages' come from `pivot deps`).
-SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/se3.py stages/tol.py
+SHARED := stages/__init__.py stages/artifacts.py stages/errors.py stages/provenance.py stages/se3.py stages/tol.py
 
 .PHONY: help install lock demo test lint bench benchmark analysis sample plan mpc execute view browser reproduce \
 	golden clean

@@ -10,6 +10,7 @@ import typer
 from pivotcli.common import cli_errors, info, step
 from pivotcli.layout import Layout
 from stages import analyze as stage
+from stages.artifacts import output_lock
 from stages.errors import InputError
 from stages.scene import load_scene
 
@@ -56,7 +57,7 @@ def analyze(
         elif mesh is None:
             raise InputError("pivot analyze: give a MESH file or --scene SCENE")
         out = out or Layout.of(scene or mesh, build).analysis
-        with step(f"analysing {mesh.name}"):
+        with output_lock(out), step(f"analysing {mesh.name}"):
             result = stage.run(mesh, out, mass, params, scale=scale, producer=f"analyze {mesh}")
     c = result.summary["counts"]
     info(

@@ -14,8 +14,10 @@ from typing import Annotated
 
 import click
 import typer
+from typer import rich_utils
 from typer.core import TyperGroup
 
+from pivotcli import started
 from pivotcli.common import configure
 from stages import __version__
 
@@ -85,6 +87,24 @@ app = typer.Typer(
 )
 
 
+_format_error = rich_utils.rich_format_error
+
+
+def _format_error_unwrapped(e) -> None:
+    """typer's usage-error box, as wide as its message, so that its last line names the option or
+    argument (at 80 columns "Invalid value for '--mass': ..." wrapped onto "string as a number")."""
+    width = max((len(line) for line in e.format_message().splitlines()), default=0) + 4
+    saved = rich_utils.MAX_WIDTH
+    rich_utils.MAX_WIDTH = max(width, saved or 80)
+    try:
+        _format_error(e)
+    finally:
+        rich_utils.MAX_WIDTH = saved
+
+
+rich_utils.rich_format_error = _format_error_unwrapped
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"pivot {__version__}")
@@ -100,6 +120,7 @@ def main_options(
                                           help="Print the version and exit.")] = False,
 ) -> None:
     """Plan how a dual-arm robot moves a large object by pivoting, tumbling and regrasping."""
+    started()
     configure(verbose, quiet)
 
 

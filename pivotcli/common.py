@@ -20,13 +20,47 @@ state = {"quiet": False, "verbose": 0}
 
 @contextlib.contextmanager
 def cli_errors() -> Iterator[None]:
-    """Turn a ``PivotError`` into one line on stderr and exit code 2 (DESIGN.md, Errors)."""
+    """Turn a ``PivotError`` or an ``OSError`` (an output that cannot be written, a file that cannot
+    be read) into one line on stderr and exit code 2, and Ctrl-C into one line and exit code 130
+    (DESIGN.md, Errors). Writes are atomic, so neither leaves a partial artifact."""
     try:
         yield
     except PivotError as e:
         message = " ".join(str(e).split("\n"))
         typer.echo(f"pivot: error: {message}", err=True)
         raise typer.Exit(code=2) from None
+    except OSError as e:
+        where = f"{e.filename}: " if e.filename else ""
+        typer.echo(f"pivot: error: {where}{e.strerror or e}", err=True)
+        raise typer.Exit(code=2) from None
+    except KeyboardInterrupt:
+        typer.echo("pivot: interrupted (no artifact was written in part)", err=True)
+        raise typer.Exit(code=130) from None
+
+
+def quiet_import(name: str):
+    """Import module ``name`` with the process' stdout and stderr silenced: PyBullet prints a banner
+    from C on import (to stderr), which would add a line to every message of a command that uses it."""
+    import ctypes
+    import importlib
+    import os
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    try:
+        with open(os.devnull, "w") as null:
+            for fd in saved:
+                os.dup2(null.fileno(), fd)
+            try:
+                return importlib.import_module(name)
+            finally:
+                ctypes.CDLL(None).fflush(None)  # C's buffered output goes to /dev/null, not after
+                for fd, copy in saved.items():
+                    os.dup2(copy, fd)
+    finally:
+        for copy in saved.values():
+            os.close(copy)
 
 
 @contextlib.contextmanager

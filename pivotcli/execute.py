@@ -28,13 +28,15 @@ def execute(
     """Run the trajectories in PyBullet: the object moves only through its contacts (§6)."""
     from dataclasses import replace
 
-    from stages import execute as stage
+    from pivotcli.common import quiet_import
+    from stages.artifacts import output_lock
 
+    stage = quiet_import("stages.execute")
     lay = Layout.of(scene, build, variant)
     trajectories = trajectories or lay.trajectories
     out = out or trajectories.parent
     params = replace(stage.Params(), seed=seed)
-    with cli_errors():
+    with cli_errors(), output_lock(out):
         if frames is None:
             from stages import artifacts
 

@@ -9,6 +9,7 @@ import typer
 
 from pivotcli.common import cli_errors, info, step
 from pivotcli.layout import VARIANTS, Layout, variant_of
+from stages.artifacts import output_lock
 
 VARIANT_HELP = f"Planner variant whose plan to use: {', '.join(VARIANTS)} (its folder under the build)."
 
@@ -21,7 +22,7 @@ def graph(
     from stages import graph as graph_stage
 
     lay = Layout.of(scene, build)
-    with cli_errors(), step("building the graph"):
+    with cli_errors(), output_lock(lay.graph), step("building the graph"):
         g = graph_stage.run(scene, lay.analysis, lay.sample, lay.graph, graph_stage.Params(),
                             producer=f"graph {scene}")
     e = g.summary["edges"]
@@ -46,7 +47,7 @@ def plan(
     lay = Layout.of(scene, build, variant_of(no_regrasp, no_tumble, no_usp))
     out = out or lay.plan
     params = plan_stage.Params(no_regrasp=no_regrasp, no_tumble=no_tumble, no_usp=no_usp, check_mpc=not no_mpc)
-    with cli_errors(), step("planning"):
+    with cli_errors(), output_lock(out), step("planning"):
         p = plan_stage.run(scene, lay.analysis, lay.sample, lay.graph, out, params, producer=f"plan {scene}")
     removed = len(p["log"])
     if p["status"] == "infeasible":
@@ -83,7 +84,7 @@ def mpc(
     out = out or plan_file.parent / "trajectories.parquet"
     params = trajectory.Params()
     params = replace(params, mpc=replace(params.mpc, horizon=horizon, alpha=alpha, beta=beta))
-    with cli_errors(), step("computing trajectories"):
+    with cli_errors(), output_lock(out), step("computing trajectories"):
         stats = trajectory.run(scene, lay.analysis, plan_file, out, params,
                                producer=f"mpc {scene}")
     if stats["status"] != "ok":

@@ -9,6 +9,7 @@ import typer
 
 from pivotcli.common import cli_errors, info, step
 from pivotcli.layout import Layout
+from stages.artifacts import output_lock
 
 
 def sample(
@@ -24,7 +25,7 @@ def sample(
     name = scene.stem
     analysis, out = analysis or layout.analysis, out or layout.sample
     with cli_errors():
-        with step("sampling poses and grasps"):
+        with output_lock(out), step("sampling poses and grasps"):
             result = stage.run(scene, analysis, out, stage.Params(), producer=f"sample {scene}")
     s = result.summary
     info(f"{name}: {s['poses']['ok']} poses ({s['poses_sp']} SP, {s['poses_usp']} USP), "

@@ -46,10 +46,7 @@ from scipy.spatial import cKDTree
 from stages import artifacts, se3, stagelog, tol
 from stages.artifacts import Field
 from stages.errors import InputError
-
-MESH_SUFFIXES = {".obj", ".stl", ".ply", ".off", ".glb", ".gltf"}
-MAX_EXTENT = 5.0  # m: beyond this the mesh is surely in mm or cm
-MIN_EXTENT = 0.01  # m
+from stages.meshfile import load_mesh
 
 
 @dataclass(frozen=True)
@@ -103,51 +100,6 @@ class Analysis:
 
 
 # --------------------------------------------------------------------------------------------- mesh
-def load_mesh(path: str | Path, scale: float = 1.0) -> trimesh.Trimesh:
-    """Load a mesh file as one watertight, outward-facing triangle mesh in metres.
-
-    Raises ``InputError`` (one line naming the file) for a missing, unreadable, empty, NaN-bearing,
-    wrongly scaled, unrepairable or zero-volume mesh.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such mesh file")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise InputError(f"{path}: unsupported mesh format '{path.suffix}' (use OBJ, STL, PLY, OFF or GLB)")
-    if not np.isfinite(scale) or scale <= 0:
-        raise InputError(f"{path}: --scale must be a positive number (got {scale})")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many types for bad files
-        raise InputError(f"{path}: cannot read mesh ({type(e).__name__}: {str(e).splitlines()[0][:120]})") from e
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
-        raise InputError(f"{path}: mesh is empty (no triangles)")
-    vertices = np.asarray(loaded.vertices, dtype=float)
-    if not np.isfinite(vertices).all():
-        raise InputError(f"{path}: mesh has NaN or infinite vertex coordinates")
-    mesh = trimesh.Trimesh(vertices * scale, np.asarray(loaded.faces), process=True, validate=True)
-    if len(mesh.faces) == 0:
-        raise InputError(f"{path}: mesh has no non-degenerate triangles")
-    extent = float(mesh.extents.max())
-    if extent > MAX_EXTENT or extent < MIN_EXTENT:
-        raise InputError(
-            f"{path}: largest extent is {extent:g} m, outside [{MIN_EXTENT}, {MAX_EXTENT}] m; the mesh is "
-            f"taken in metres: pass --scale (e.g. --scale 0.001 for millimetres)"
-        )
-    if not mesh.is_watertight:
-        trimesh.repair.fill_holes(mesh)
-        if not mesh.is_watertight:
-            open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
-            raise InputError(f"{path}: mesh is not watertight ({open_edges} open edges) and cannot be repaired")
-    if not mesh.is_winding_consistent:
-        trimesh.repair.fix_winding(mesh)
-    if abs(mesh.volume) < tol.zero * 1e3 or not np.isfinite(mesh.volume):
-        raise InputError(f"{path}: mesh encloses zero volume")
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
-
-
 def mass_properties(mesh: trimesh.Trimesh, mass: float) -> dict:
     """CoM ``p_OCm (3,)`` and inertia about the CoM ``I_Cm (3, 3)`` (kg m^2) for uniform density."""
     density = mass / mesh.volume

@@ -8,13 +8,22 @@ columns, ``frame``. A JSON artifact holds the same under its ``meta`` key. Timin
 artifact: they go to ``<artifact>.timings.json`` beside it, so that reruns with the same inputs are
 byte-identical.
 
-Every write goes to a temporary file in the target folder and is renamed into place, so an
-interrupted run never leaves a half-written artifact behind.
+Every write goes to a temporary file in the target folder and is renamed into place (with the mode
+the umask gives a new file), so an interrupted run never leaves a half-written artifact behind; a
+stage holds :func:`output_lock` on its output while it writes, so two runs never mix one folder.
+
+Artifacts cannot lie (issue 17): a table is checked on read against :data:`SCHEMAS` (columns, types,
+finite values, ids >= -1); a JSON artifact carries the sha256 of its content, so a hand edit is
+refused; :func:`check_inputs` refuses an artifact made from other inputs than the ones given now.
+Paths never enter an artifact (inputs are content hashes, the producer names files relative to the
+working folder), so two checkouts at different paths write byte-identical artifacts.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import hashlib
 import json
 import os
@@ -30,7 +39,43 @@ import pyarrow.parquet as pq
 from stages import __version__
 from stages.errors import ArtifactError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+
+# Column kinds of the pipeline's tables, checked on read: "f" finite float, "f~" float that may be
+# infinite (never NaN), "i" integer, "id" integer id (>= -1, -1 meaning none), "b" bool, "s" string,
+# "[f]" list of finite floats, "[id]" list of ids. A table may hold more columns than listed here.
+_POSE = {k: "f" for k in ("x", "y", "z", "qx", "qy", "qz", "qw")}
+SCHEMAS: dict[str, dict[str, str]] = {
+    "hull": {"hull_id": "id", "kind": "s", "v0": "id", "v1": "id", "x0": "f", "y0": "f", "z0": "f", "x1": "f",
+             "y1": "f", "z1": "f", "face_a": "id", "face_b": "id", "angle": "f"},
+    "placements": {"placement_id": "id", "nx": "f", "ny": "f", "nz": "f", "area": "f", **_POSE, "stable": "b",
+                   "margin": "f", "com_height": "f", "support_vertices": "[id]", "polygon": "[f]"},
+    "segments": {"facet_id": "id", "seed": "id", "triangles": "[id]", "nx": "f", "ny": "f", "nz": "f", "area": "f",
+                 "cx": "f", "cy": "f", "cz": "f", "contact_surface": "b", "boundary": "[id]"},
+    "contacts": {"contact_id": "id", "facet_id": "id", "triangle": "id", "px": "f", "py": "f", "pz": "f",
+                 "nx": "f", "ny": "f", "nz": "f"},
+    "pairs": {"pair_id": "id", "contact_a": "id", "contact_b": "id", "facet_a": "id", "facet_b": "id",
+              "width": "f", "angle": "f", "mx": "f", "my": "f", "mz": "f"},
+    "poses": {"pose_id": "id", **_POSE, "placement_id": "id", "support": "s", "status": "s", "parent": "id",
+              "primitive": "s", "vertex": "id", "edge_v0": "id", "edge_v1": "id", "angle": "f", "margin": "f~"},
+    "pose_links": {"link_id": "id", "pose_a": "id", "pose_b": "id", "primitive": "s", "vertex": "id",
+                   "edge_v0": "id", "edge_v1": "id", "angle": "f"},
+    "grasps": {"grasp_id": "id", "pose_id": "id", "pair_id": "id", "contact_left": "id", "contact_right": "id",
+               "margin": "f", "hold_left": "b", "hold_right": "b", "pivot_vertices": "[id]", "q_left": "[f]",
+               "q_right": "[f]"},
+    "grasp_rejects": {"pose_id": "id", "pair_id": "id", "reason": "s"},
+    "nodes": {"node_id": "id", "kind": "s", "pose_id": "id", "grasp_id": "id", "support": "s"},
+    "edges": {"edge_id": "id", "node_a": "id", "node_b": "id", "primitive": "s", "weight": "f", "status": "s",
+              "directed": "b", "vertex": "id", "edge_v0": "id", "edge_v1": "id", "arm": "s"},
+    "catches": {"node_id": "id", "kind": "s", "pose_id": "id", "arm": "s", "contact": "id", "status": "s",
+                "q": "[f]"},
+    "trajectories": {"step": "id", "t": "f", "primitive": "id", "kind": "s", "phase": "s", **_POSE,
+                     **{f"{b}{ax}": "f" for b in ("l", "r", "fl", "fr", "f0") for ax in "xyz"},
+                     "tilt": "f", "yaw": "f", "tilt_ref": "f", "yaw_ref": "f", "q_left": "[f]", "q_right": "[f]",
+                     "left_contact": "b", "right_contact": "b"},
+    "execution": {"t": "f", "primitive": "id", "kind": "s", **_POSE, **{f"plan_{k}": "f" for k in _POSE},
+                  "q_left": "[f]", "q_right": "[f]"},
+}
 
 
 @dataclass(frozen=True)
@@ -72,8 +117,21 @@ def make_meta(artifact: str, params: Mapping, inputs: Mapping[str, str | Path], 
         "schema_version": SCHEMA_VERSION,
         "params": _jsonable(dict(params)),
         "inputs": {k: sha256_file(v) for k, v in sorted(inputs.items())},
-        "producer": f"pivot {__version__}: {producer}",
+        "producer": f"pivot {__version__}: {portable(producer)}",
     }
+
+
+def portable(text: str) -> str:
+    """``text`` with each absolute path in it written relative to the working folder (its file name
+    when it lies outside), so that an artifact does not depend on where the checkout lies."""
+    cwd = Path.cwd()
+    words = []
+    for w in text.split(" "):
+        p = Path(w)
+        if p.is_absolute():
+            w = str(p.relative_to(cwd)) if p.is_relative_to(cwd) else p.name
+        words.append(w)
+    return " ".join(words)
 
 
 @contextlib.contextmanager
@@ -85,10 +143,54 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
-        os.replace(tmp, path)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a new file gets what the umask allows
+        try:
+            os.replace(tmp, path)
+        except OSError as e:  # e.g. a folder in the way: name the target, not the temporary file
+            raise ArtifactError(f"{path}: cannot write it ({e.strerror})") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def output_lock(path: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on the output ``path`` (a folder or a file) while a stage writes it.
+
+    The lock is the file ``.<name>.lock`` beside ``path`` (``flock``, released when the process dies);
+    a second writer raises ``ArtifactError`` at once, so two runs never mix one output. The lock file
+    is removed on release; a writer that locked a removed lock file tries again.
+    """
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            os.close(fd)
+            if e.errno in (errno.EAGAIN, errno.EACCES):
+                raise ArtifactError(f"{path}: another pivot is writing it (lock {lock}); let it finish") from None
+            raise
+        try:
+            if os.path.exists(lock) and os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                break
+        except OSError:
+            pass
+        os.close(fd)  # the holder removed this lock file before we got it: take the new one
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
 
 
 def write_table(path: str | Path, columns: Mapping[str, np.ndarray], fields: list[Field], meta: dict) -> None:
@@ -108,11 +210,12 @@ def write_table(path: str | Path, columns: Mapping[str, np.ndarray], fields: lis
             md["frame"] = f.frame
         schema_fields.append(pa.field(f.name, arr.type, metadata=md))
         arrays.append(arr)
+    table = pa.Table.from_arrays(arrays, schema=pa.schema(schema_fields))
     # The units and frames again as schema-level maps: pandas, polars and DuckDB show the schema's metadata
     # but drop the fields'.
     units = {"units": {f.name: f.unit for f in fields}, "frames": {f.name: f.frame for f in fields if f.frame}}
-    schema = pa.schema(schema_fields, metadata={k: json.dumps(v, sort_keys=True) for k, v in {**meta, **units}.items()})
-    table = pa.Table.from_arrays(arrays, schema=schema)
+    meta = {**meta, **units, "content": _table_digest(table)}
+    table = table.replace_schema_metadata({k: json.dumps(v, sort_keys=True) for k, v in meta.items()})
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, compression="zstd", write_statistics=False)
 
@@ -125,7 +228,7 @@ def read_table(path: str | Path, artifact: str | None = None, required: list[str
     try:
         table = pq.read_table(path)
     except (OSError, pa.ArrowException) as e:
-        raise ArtifactError(f"{path}: not a readable Parquet artifact (truncated or corrupt): {e}") from e
+        raise ArtifactError(f"{path}: not a readable Parquet artifact (truncated or corrupt)") from e
     raw = table.schema.metadata or {}
     try:
         meta = {k.decode(): json.loads(v) for k, v in raw.items() if k.decode() != "ARROW:schema"}
@@ -135,19 +238,89 @@ def read_table(path: str | Path, artifact: str | None = None, required: list[str
     missing = [c for c in (required or []) if c not in table.column_names]
     if missing:
         raise ArtifactError(f"{path}: wrong schema for '{meta['artifact']}': missing columns {missing}")
+    _check_columns(path, table, SCHEMAS.get(meta["artifact"], {}))
+    if meta.get("content") != _table_digest(table):
+        raise ArtifactError(f"{path}: its content does not match its sha256 (edited by hand?); rerun its stage")
     cols = {}
     for name in table.column_names:
         col = table.column(name)
-        if pa.types.is_list(col.type) or pa.types.is_large_list(col.type):
-            cols[name] = np.array([np.asarray(v) for v in col.to_pylist()] + [None], dtype=object)[:-1]
-        else:
-            cols[name] = col.to_numpy(zero_copy_only=False)
+        try:
+            if pa.types.is_list(col.type) or pa.types.is_large_list(col.type):
+                cols[name] = np.array([np.asarray(v) for v in col.to_pylist()] + [None], dtype=object)[:-1]
+            else:
+                cols[name] = col.to_numpy(zero_copy_only=False)
+        except (pa.ArrowException, ValueError, TypeError) as e:
+            raise ArtifactError(f"{path}: column {name} cannot be read ({type(e).__name__})") from e
     return Table(cols, meta)
+
+
+_KIND_NAMES = {"f": "floats", "f~": "floats", "i": "integers", "id": "integer ids", "b": "bools", "s": "strings",
+               "[f]": "lists of floats", "[id]": "lists of integer ids"}
+
+
+def _check_columns(path: Path, table: pa.Table, schema: Mapping[str, str]) -> None:
+    """Refuse a table whose columns are missing, of another type, NaN, infinite or ids below -1."""
+    missing = [c for c in schema if c not in table.column_names]
+    if missing:
+        raise ArtifactError(f"{path}: missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+                            f"(found {', '.join(table.column_names)})")
+    for name, kind in schema.items():
+        col = table.column(name)
+        values = col
+        if kind.startswith("["):
+            if not (pa.types.is_list(col.type) or pa.types.is_large_list(col.type) or
+                    (pa.types.is_null(col.type) and len(col) == 0)):
+                raise ArtifactError(f"{path}: column {name} is {col.type}, not {_KIND_NAMES[kind]}")
+            values = pa.chunked_array([c.flatten() for c in col.chunks], type=None) if len(col) else None
+            if values is not None and col.null_count:
+                raise ArtifactError(f"{path}: column {name} has {col.null_count} missing values")
+            kind = kind[1:-1]
+        if values is None or (pa.types.is_null(values.type) and len(values) == 0):
+            continue
+        _check_values(path, name, values, kind)
+
+
+def _check_values(path: Path, name: str, values: pa.ChunkedArray, kind: str) -> None:
+    t = values.type
+    ok = {"f": pa.types.is_floating, "f~": pa.types.is_floating, "i": pa.types.is_integer, "id": pa.types.is_integer,
+          "b": pa.types.is_boolean, "s": lambda t: pa.types.is_string(t) or pa.types.is_large_string(t)}[kind](t)
+    if not ok:
+        raise ArtifactError(f"{path}: column {name} is {t}, not {_KIND_NAMES[kind]}")
+    if values.null_count:
+        raise ArtifactError(f"{path}: column {name} has {values.null_count} missing values")
+    if kind in ("f", "f~"):
+        x = values.to_numpy()
+        bad = np.isnan(x) if kind == "f~" else ~np.isfinite(x)
+        if bad.any():
+            raise ArtifactError(f"{path}: column {name} has {int(bad.sum())} non-finite values "
+                                f"(first at row {int(np.argmax(bad))})")
+    elif kind == "id":
+        x = values.to_numpy()
+        if len(x) and x.min() < -1:
+            raise ArtifactError(f"{path}: column {name} has the id {int(x.min())} (ids are >= -1)")
+
+
+def read_meta(path: str | Path, artifact: str | None = None) -> dict:
+    """The metadata of a Parquet or JSON artifact (checked as by :func:`read_table`/:func:`read_json`,
+    without reading a table's columns)."""
+    path = Path(path)
+    if path.suffix == ".json":
+        return read_json(path, artifact)["meta"]
+    if not path.is_file():
+        raise ArtifactError(f"{path}: missing artifact (run the stage that writes it first)")
+    try:
+        raw = pq.read_schema(path).metadata or {}
+        meta = {k.decode(): json.loads(v) for k, v in raw.items() if k.decode() != "ARROW:schema"}
+    except (OSError, pa.ArrowException, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ArtifactError(f"{path}: not a readable Parquet artifact (truncated or corrupt)") from e
+    _check_meta(path, meta, artifact)
+    return meta
 
 
 def write_json(path: str | Path, data: Mapping, meta: dict) -> None:
     """Write a JSON artifact ``{"meta": meta, **data}`` (sorted keys, stable float text)."""
-    text = json.dumps({"meta": meta, **_jsonable(dict(data))}, indent=1, sort_keys=True) + "\n"
+    body = _jsonable(dict(data))
+    text = json.dumps({"meta": {**meta, "content": _digest(body)}, **body}, indent=1, sort_keys=True) + "\n"
     with atomic_path(path) as tmp:
         tmp.write_text(text)
 
@@ -164,7 +337,65 @@ def read_json(path: str | Path, artifact: str | None = None) -> dict:
     if not isinstance(data, dict) or not isinstance(data.get("meta"), dict):
         raise ArtifactError(f"{path}: not a pivot artifact (no 'meta' block)")
     _check_meta(path, data["meta"], artifact)
+    body = {k: v for k, v in data.items() if k != "meta"}
+    if data["meta"].get("content") != _digest(body):
+        raise ArtifactError(f"{path}: its content does not match its sha256 (edited by hand?); rerun its stage")
     return data
+
+
+def _table_digest(table: pa.Table) -> str:
+    """sha256 of a table's columns: names, types, null masks and values (not its metadata)."""
+    h = hashlib.sha256()
+    for name in table.column_names:
+        col = table.column(name).combine_chunks()
+        h.update(f"{name}:{len(col)}:{col.null_count};".encode())
+        while pa.types.is_list(col.type) or pa.types.is_large_list(col.type):  # Parquet renames list items
+            lengths = col.value_lengths().fill_null(-1).to_numpy(zero_copy_only=False).astype(np.int64)
+            h.update(b"list;" + lengths.tobytes())
+            col = col.flatten()
+        h.update(f"{col.type};".encode())
+        if col.null_count:  # the mask, then the values that are there
+            h.update(col.is_null().to_numpy(zero_copy_only=False).tobytes())
+            col = col.drop_null()
+        if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+            h.update("\0".join(col.to_pylist()).encode())
+        elif not pa.types.is_null(col.type):
+            h.update(np.ascontiguousarray(col.to_numpy(zero_copy_only=False)).tobytes())
+    return h.hexdigest()
+
+
+def _digest(body: Mapping) -> str:
+    """sha256 of a JSON artifact's content (everything but ``meta``) in a canonical text form."""
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+_HASHES: dict[tuple, str] = {}
+
+
+def check_inputs(path: str | Path, meta: Mapping, given: Mapping[str, str | Path]) -> None:
+    """Refuse the artifact ``path`` unless it was made from the files ``given`` (name -> file) now.
+
+    Compares the sha256 that ``meta["inputs"]`` recorded for each name with the file's; a stale or
+    foreign upstream (another mesh, scene or analysis) raises ``ArtifactError`` naming both files.
+    """
+    recorded = meta.get("inputs", {})
+    for name, file in given.items():
+        if name not in recorded:
+            raise ArtifactError(f"{path}: records no '{name}' input, so it cannot vouch for {file}; rerun its stage")
+        if recorded[name] != _cached_sha256(Path(file)):
+            raise ArtifactError(f"{path} was made from another {name} than {file}; rerun the stage that writes it")
+
+
+def _cached_sha256(path: Path) -> str:
+    try:
+        st = path.stat()
+    except OSError as e:
+        raise ArtifactError(f"{path}: cannot read it ({e.strerror})") from None
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, st.st_ino)
+    if key not in _HASHES:
+        _HASHES[key] = sha256_file(path)
+    return _HASHES[key]
 
 
 def write_timings(artifact_path: str | Path, timings: Mapping[str, float]) -> None:
@@ -219,7 +450,7 @@ def _jsonable(obj):
 
 
 # --------------------------------------------------------------------------------------------- diff
-IGNORED_META = ("producer",)  # informational: names the command line, not the content
+IGNORED_META = ("producer", "content")  # the command line; the exact hash of what is compared with tolerances
 
 
 def diff_artifacts(a: str | Path, b: str | Path, rtol: float = 1e-9, atol: float = 1e-9,

@@ -174,10 +174,10 @@ from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation, Slerp
 from trimesh.intersections import slice_faces_plane
 
-from stages import artifacts, se3, stagelog
+from stages import artifacts, provenance, se3, stagelog
 from stages.analyze import load_mesh
 from stages.artifacts import Field, atomic_path
-from stages.errors import InputError
+from stages.errors import InputError, about
 from stages.robot import load_robot
 from stages.scene import load_scene
 from stages.simplify import collision_mesh
@@ -394,8 +394,10 @@ def check_trajectory(traj, dt: float, dof: int | None = None) -> Plan:
             a = np.stack([np.asarray(r, dtype=float) for r in a]) if len(a) else np.zeros((0, width))
         a = np.asarray(a, dtype=float)
         want = (T,) if width is None else (T, width if width > 0 else a.shape[-1])
-        if a.shape != want or not np.all(np.isfinite(a)):
-            raise InputError(f"trajectory: column {name!r} must be finite with shape {want}, got {a.shape}")
+        if a.shape != want:
+            raise InputError(f"trajectory: column {name!r} must have shape {want}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"trajectory: column {name!r} has non-finite values")
         return a
 
     num("t")
@@ -1728,8 +1730,11 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     model, _ = load_object_model(a)
     X_goal, _ = placement_pose(scene.goal, model, "goal")
     table = artifacts.read_table(trajectories_path, "trajectories", required=[f.name for f in TRAJECTORY_FIELDS])
-    ex = simulate(scene, a / "object.ply", float(summary["mass"]), np.asarray(summary["com"], dtype=float),
-                  np.asarray(summary["inertia"], dtype=float), table.columns, X_goal, params, gui=gui, frames=frames)
+    provenance.check_made_from(trajectories_path, table.meta, scene, a)
+    with about(trajectories_path):
+        ex = simulate(scene, a / "object.ply", float(summary["mass"]), np.asarray(summary["com"], dtype=float),
+                      np.asarray(summary["inertia"], dtype=float), table.columns, X_goal, params, gui=gui,
+                      frames=frames)
     # Two figures for the report: the CoM's error along x to the goal (Table 2 measures reach along x)
     # and the rotation about z achieved from the first to the last row (Exp. 2).
     X = se3.matrix_from_columns({k: np.asarray(ex.log[k])[[0, -1]] for k in se3.POSE_COLUMNS})
@@ -1744,16 +1749,16 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     cols = {k: (list(v) if np.ndim(v) == 2 else v) for k, v in ex.log.items()}  # joints as list columns
     artifacts.write_table(out / "execution.parquet", cols, LOG_FIELDS,
                           artifacts.make_meta("execution", meta_params, inputs, producer))
-    artifacts.write_json(out / "execution.json", metrics,
-                         artifacts.make_meta("execution_metrics", meta_params, inputs, producer))
-    artifacts.write_timings(out / "execution.json", {"wall": ex.timings["total_s"], **{
-        k: v for k, v in ex.timings.items() if k != "total_s"}})
-    frames_path = out / "frames.npz"
+    frames_path = out / "frames.npz"  # before the target (execution.json), which vouches for it
     if ex.frames:
         with atomic_path(frames_path) as tmp, open(tmp, "wb") as f:
             np.savez_compressed(f, frames=np.stack(ex.frames))
     elif frames_path.exists():
         frames_path.unlink()
+    artifacts.write_json(out / "execution.json", metrics,
+                         artifacts.make_meta("execution_metrics", meta_params, inputs, producer))
+    artifacts.write_timings(out / "execution.json", {"wall": ex.timings["total_s"], **{
+        k: v for k, v in ex.timings.items() if k != "total_s"}})
     stagelog.log_execution(metrics, ex.log)
     return ex
 

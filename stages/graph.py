@@ -54,7 +54,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from stages import artifacts, mpc, poses, se3, stability, stagelog
+from stages import artifacts, mpc, poses, provenance, se3, stability, stagelog
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -873,6 +873,7 @@ EDGE_FIELDS = [Field("edge_id", "id"), Field("node_a", "id"), Field("node_b", "i
 def run(scene_path, analysis_dir, sample_dir, out_dir, params: Params, producer: str = "graph") -> Graph:
     """Build the graph of ``scene_path`` from its analysis and samples; write it into ``out_dir``."""
     scene = load_scene(scene_path)
+    provenance.check_sample(sample_dir, scene, analysis_dir)
     graph = build_graph(scene, analysis_dir, sample_dir, params)
     out = Path(out_dir)
     meta_params = {**{k: v for k, v in asdict(params).items() if k not in ("threads", "pivot_chunk")},

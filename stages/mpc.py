@@ -165,8 +165,10 @@ def _sample_times(total: float, dt: float) -> np.ndarray:
 
 def _as_pose(X, name: str) -> np.ndarray:
     X = np.asarray(X, dtype=float)
-    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-        raise InputError(f"{name}: expected a finite (4, 4) pose, got shape {X.shape}")
+    if X.shape != (4, 4):
+        raise InputError(f"{name}: expected a (4, 4) pose, got shape {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise InputError(f"{name}: the (4, 4) pose has non-finite entries")
     return X
 
 
@@ -928,9 +930,10 @@ class MPCResult:
 def _check_reference(t, X_WO_ref, params: Params):
     t = np.asarray(t, dtype=float)
     X = np.asarray(X_WO_ref, dtype=float)
-    if t.ndim != 1 or len(t) < 2 or X.shape != (len(t), 4, 4) or not np.all(np.isfinite(X)):
-        raise InputError(f"mpc: expected t (T,) and finite X_WO_ref (T, 4, 4) with T >= 2, got {t.shape}, "
-                         f"{X.shape}")
+    if t.ndim != 1 or len(t) < 2 or X.shape != (len(t), 4, 4):
+        raise InputError(f"mpc: expected t (T,) and X_WO_ref (T, 4, 4) with T >= 2, got {t.shape}, {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise InputError("mpc: X_WO_ref has non-finite entries")
     if np.abs(np.diff(t) - params.dt).max() > 1e-9:
         raise InputError(f"mpc: the reference must be sampled at Params.dt = {params.dt} s")
     if params.horizon < 1 or params.block < 1 or params.f_max < params.f_min or params.f_min < 0.0:

@@ -51,7 +51,7 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from stages import artifacts, diagnosis, mpc, se3, stagelog, transit
+from stages import artifacts, diagnosis, mpc, provenance, se3, stagelog, transit
 from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
@@ -141,7 +141,8 @@ class _Context:
         self.inputs = {"scene": scene.path, "nodes": gd / "nodes.parquet", "edges": gd / "edges.parquet",
                        "catches": gd / "catches.parquet",
                        "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet",
-                       "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet"}
+                       "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet",
+                       **provenance.analysis_inputs(analysis_dir)}
         self._tumble_env = None
 
     def contact(self, grasp: int, arm: str) -> int:
@@ -691,6 +692,7 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
     """Plan and write ``plan.json`` (status ok, partial or infeasible); returns the plan dict."""
     t0 = time.perf_counter()
     scene = load_scene(scene_path)
+    provenance.check_graph(graph_dir, scene, analysis_dir, sample_dir)
     ctx = _Context(scene, analysis_dir, sample_dir, graph_dir)
     plan = search(ctx, params)
     elapsed = time.perf_counter() - t0

@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import artifacts, poses, se3, stability, stagelog
+from stages import artifacts, poses, provenance, se3, stability, stagelog
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -491,6 +491,7 @@ def run(scene_path: str | Path, analysis_dir: str | Path, out_dir: str | Path, p
         producer: str = "sample") -> Result:
     """Read the scene and analysis, sample, write the artifacts (module docstring) into ``out_dir``."""
     scene = load_scene(scene_path)
+    provenance.check_analysis(analysis_dir, scene)
     result = compute(scene, analysis_dir, params)
     out = Path(out_dir)
     # Threads change how fast, not what: left out so that the artifacts do not depend on them.

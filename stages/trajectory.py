@@ -91,9 +91,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from stages import artifacts, mpc, poses, se3, stability, stagelog, transit
+from stages import artifacts, mpc, poses, provenance, se3, stability, stagelog, transit
 from stages.artifacts import Field
-from stages.errors import InputError
+from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
 from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
@@ -1223,18 +1223,26 @@ def run(scene_path, analysis_dir, plan_path, out_path, params: Params, producer:
     t0 = time.perf_counter()
     scene = load_scene(scene_path)
     plan = artifacts.read_json(plan_path, "plan")
+    provenance.check_made_from(plan_path, plan["meta"], scene, analysis_dir)
     if plan["status"] == "infeasible":
         raise InputError(f"{plan_path}: the plan is infeasible ({plan.get('reason')}); nothing to execute")
-    cols, stats = compute(scene, analysis_dir, plan, params)
+    if not plan["steps"]:
+        raise InputError(f"{plan_path}: the plan has no steps (the start is already the goal); nothing to move")
+    hull = artifacts.read_table(Path(analysis_dir) / "hull.parquet", "hull")
+    provenance.check_plan_steps(plan_path, plan, int((hull["kind"] == "vertex").sum()),
+                                len(artifacts.read_table(Path(analysis_dir) / "contacts.parquet", "contacts")))
+    with about(plan_path):
+        cols, stats = compute(scene, analysis_dir, plan, params)
     meta_params = {**asdict(params), "N_p": params.mpc.horizon, "dt": params.mpc.dt, "alpha": params.mpc.alpha,
                    "beta": params.mpc.beta}
-    inputs = {"scene": scene_path, "plan": plan_path}
+    inputs = {"scene": scene_path, "plan": plan_path, **provenance.analysis_inputs(analysis_dir)}
     out = Path(out_path)
-    if stats["status"] == "ok":
-        artifacts.write_table(out, cols, FIELDS, artifacts.make_meta("trajectories", meta_params, inputs, producer))
-    else:  # no trajectories for this plan: an older file would pass for them
+    # The target (trajectories.parquet, what Make tracks) goes last, after the summary it vouches for.
+    if stats["status"] != "ok":  # no trajectories for this plan: an older file would pass for them
         out.unlink(missing_ok=True)
     artifacts.write_json(out.with_suffix(".json"), stats, artifacts.make_meta("mpc", meta_params, inputs, producer))
+    if stats["status"] == "ok":
+        artifacts.write_table(out, cols, FIELDS, artifacts.make_meta("trajectories", meta_params, inputs, producer))
     artifacts.write_timings(out.with_suffix(".json"), {"mpc": time.perf_counter() - t0})
     stagelog.log_trajectories(stats, cols.get("primitive") if stats["status"] == "ok" else None)
     return stats

@@ -532,15 +532,21 @@ def test_organic_mesh_falls_back_to_vhacd_and_keeps_its_hole(tmp_path):
 def test_run_writes_the_execution_artifacts_from_parquet(pivot_case, tmp_path):
     """The stage's I/O: the analysis on disk, the pivot written as trajectories.parquet (q as list
     columns, as the MPC stage writes them) and read back; the log and metrics round-trip."""
-    from stages import analyze, artifacts
+    from stages import analyze, artifacts, provenance
     from stages.objectmodel import load_object_model
     from stages.sample import placement_pose
 
     analyze.run(PIANO, tmp_path / "analysis", pivot_case["mass"], analyze.Params())
     traj = dict(pivot_case["traj"])
     traj["q_left"], traj["q_right"] = list(traj["q_left"]), list(traj["q_right"])
-    meta = artifacts.make_meta("trajectories", {}, {}, "test")
-    artifacts.write_table(tmp_path / "trajectories.parquet", traj, execute.TRAJECTORY_FIELDS, meta)
+    T = len(traj["t"])  # the columns of the MPC's schema that execute does not read (the figure does)
+    traj.update(step=np.arange(T), phase=np.full(T, "rotate"),
+                **{k: np.zeros(T) for k in ("f0x", "f0y", "f0z", "tilt", "yaw", "tilt_ref", "yaw_ref")})
+    fields = execute.TRAJECTORY_FIELDS + [artifacts.Field(k) for k in ("step", "phase", "f0x", "f0y", "f0z", "tilt",
+                                                                        "yaw", "tilt_ref", "yaw_ref")]
+    made_from = {"scene": SCENE_PATH, **provenance.analysis_inputs(tmp_path / "analysis")}  # execute checks it
+    meta = artifacts.make_meta("trajectories", {}, made_from, "test")
+    artifacts.write_table(tmp_path / "trajectories.parquet", traj, fields, meta)
     out = tmp_path / "full"
     ex = execute.run(SCENE_PATH, tmp_path / "analysis", tmp_path / "trajectories.parquet", out,
                      pivot_case["params"], frames=2)
