@@ -37,11 +37,6 @@ def execute(
     out = out or trajectories.parent
     params = replace(stage.Params(), seed=seed)
     with cli_errors(), output_lock(out):
-        if frames is None:
-            from stages import artifacts
-
-            duration = artifacts.read_json(trajectories.with_suffix(".json"), "mpc").get("duration", 0.0)
-            frames = max(2, round(duration))
         res = stage.run(scene, lay.analysis, trajectories, out, params, frames=frames, gui=gui,
                         producer=f"execute {scene}")
         m = res.metrics

@@ -1710,16 +1710,16 @@ def _slip_metrics(log: dict) -> dict:
 # Stage I/O
 
 
-def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = Params(), frames: int = 0,
+def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = Params(), frames: int | None = 0,
         gui: bool = False, producer: str = "execute") -> Execution:
     """``pivot execute``: simulate ``trajectories.parquet`` and write the execution artifacts.
 
     Reads the scene, the analysis (``analysis.json`` for mass, CoM and inertia, ``object.ply``, and the
     placements for the goal pose ``X_WO_goal`` of the scene's goal) and the trajectories; writes into
     ``out_dir``: ``execution.parquet`` (the log, :data:`LOG_FIELDS`), ``execution.json`` (the metrics)
-    with ``execution.json.timings.json`` (wall-clock, kept apart) and, when ``frames > 0``,
-    ``frames.npz`` (``frames (k, height, width, 3)`` uint8, for ``pivot show execution``; a stale
-    one is removed otherwise). Returns the :class:`Execution`.
+    with ``execution.json.timings.json`` (wall-clock, kept apart) and, when ``frames > 0`` (None: one
+    per second of motion), ``frames.npz`` (``frames (k, height, width, 3)`` uint8, for ``pivot show
+    execution``; a stale one is removed otherwise). Returns the :class:`Execution`.
     """
     from stages.objectmodel import load_object_model
     from stages.sample import placement_pose
@@ -1731,6 +1731,8 @@ def run(scene_path, analysis_dir, trajectories_path, out_dir, params: Params = P
     X_goal, _ = placement_pose(scene.goal, model, "goal")
     table = artifacts.read_table(trajectories_path, "trajectories", required=[f.name for f in TRAJECTORY_FIELDS])
     provenance.check_made_from(trajectories_path, table.meta, scene, a)
+    if frames is None:  # one frame per second of motion
+        frames = max(2, round(float(table["t"][-1]) - float(table["t"][0])))
     with about(trajectories_path):
         ex = simulate(scene, a / "object.ply", float(summary["mass"]), np.asarray(summary["com"], dtype=float),
                       np.asarray(summary["inertia"], dtype=float), table.columns, X_goal, params, gui=gui,

@@ -621,8 +621,10 @@ def _add_execution(page: Page, run_dir: Path, tr, rows, robot, visuals, mesh, co
         lines.append("execution: none (run pivot execute to compare with physics)")
         return []
     log = artifacts.read_table(path, "execution")
-    n = len(log["t"])  # a log that stops early is drawn as far as it goes
-    if n > len(tr["t"]) or n == 0 or not np.allclose(log["t"], tr["t"][:n], atol=1e-6):
+    # A log that stops early is drawn as far as it goes; the release after the plan's last step (the
+    # balls let go and back off, ``stages.execute.with_release``) is not drawn.
+    n = min(len(log["t"]), len(tr["t"]))
+    if n == 0 or not np.allclose(log["t"][:n], tr["t"][:n], atol=1e-6):
         raise ArtifactError(f"{path}: its rows are not the trajectories' time steps (an execution of other "
                             "trajectories?)")
     m = executed_motion(log, np.append(rows[rows < n - 1], n - 1), robot, mesh, com_O)

@@ -1031,12 +1031,18 @@ def test_seed_zero_is_nominal_and_a_seed_above_zero_perturbs(pivot_case):
 def test_run_seeds_writes_the_distribution(piano_analysis, pivot_case, tmp_path):
     """``pivot execute --seeds K``: one execution per perturbed seed and ``robustness.json`` with the
     count that succeed and the failure codes (here a hold, 18 cm short of the scene's goal: none)."""
-    from stages import artifacts
+    from stages import artifacts, provenance
 
     traj = dict(_hold_table(pivot_case, seconds=0.3))
     traj["q_left"], traj["q_right"] = list(traj["q_left"]), list(traj["q_right"])
-    artifacts.write_table(tmp_path / "trajectories.parquet", traj, execute.TRAJECTORY_FIELDS,
-                          artifacts.make_meta("trajectories", {}, {}, "test"))
+    T = len(traj["t"])  # the columns of the MPC's schema that execute does not read (the figure does)
+    traj.update(step=np.arange(T), phase=np.full(T, "rotate"),
+                **{k: np.zeros(T) for k in ("f0x", "f0y", "f0z", "tilt", "yaw", "tilt_ref", "yaw_ref")})
+    fields = execute.TRAJECTORY_FIELDS + [artifacts.Field(k) for k in ("step", "phase", "f0x", "f0y", "f0z", "tilt",
+                                                                        "yaw", "tilt_ref", "yaw_ref")]
+    made_from = {"scene": SCENE_PATH, **provenance.analysis_inputs(piano_analysis)}  # execute checks it
+    artifacts.write_table(tmp_path / "trajectories.parquet", traj, fields,
+                          artifacts.make_meta("trajectories", {}, made_from, "test"))
     s = execute.run_seeds(SCENE_PATH, piano_analysis, tmp_path / "trajectories.parquet", tmp_path / "out",
                           pivot_case["params"], 2)
     assert s["seeds"] == 2 and s["required"] == 2 and s["succeeded"] == 0
