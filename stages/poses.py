@@ -52,10 +52,6 @@ from stages.analyze import _polygon_margins
 from stages.errors import InputError
 
 PRIMITIVES = ("start", "goal", "pivot", "tumble")
-#: A roll turns about the line that lays the next face flat (``roll_segments``); it must lie within this
-#: angle (rad) of the hull edge it rolls over: a hull of merged near-coplanar faces is off by tenths of
-#: a degree (the analysis' ``hull_coplanar_deg``), another line is not a roll over that edge.
-ROLL_AXIS_TOL = np.radians(2.0)
 
 
 @dataclass(frozen=True)
@@ -633,18 +629,16 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
         a, b = model.edges[e]
         pa, pb = se3.transform_points(X, model.vertices[[a, b]])
         g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
-        edge_dir = (pb - pa) / np.linalg.norm(pb - pa)
+        angle = float(model.edge_angle[e])
+        axis = (pb - pa) / np.linalg.norm(pb - pa)
         n2 = se3.rotate_vectors(X, model.normals[g2])
-        # The turn that lays face g2 flat exactly, about the horizontal line through pa across n2: the
-        # edge itself on an exact hull; on a hull whose faces merge near-coplanar triangles, within
-        # the merge's tolerance of it.
-        axis = np.cross(n2, [0.0, 0.0, -1.0])
-        angle = float(np.arctan2(np.linalg.norm(axis), -n2[2]))
-        axis /= max(np.linalg.norm(axis), 1e-12)
-        if abs(axis @ edge_dir) < np.cos(ROLL_AXIS_TOL):
-            raise InputError(f"tumble over ({v0}, {v1}): face {g2} does not turn onto the table about it")
-        T = se3.transform_about_line(pa, axis, angle)
-        segs.append((X, pa, axis, angle, (int(a), int(b))))
+        for sign in (1.0, -1.0):  # the sense that turns face g2 onto the table
+            T = se3.transform_about_line(pa, sign * axis, angle)
+            if se3.rotate_vectors(T, n2)[2] < -1 + 1e-6:
+                break
+        else:
+            raise InputError(f"tumble over ({v0}, {v1}): face {g2} does not turn onto the table")
+        segs.append((X, pa, sign * axis, angle, (int(a), int(b))))
         X, g, total = T @ X, g2, total + angle
         if total > np.pi + 1e-9:
             break
@@ -654,33 +648,22 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
                         edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=X)
         com = se3.transform_points(X, model.com)
         centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
-        e = _next_roll_edge(model, X, g, e, com[:2], centre[:2])
-        if e < 0:
+        best, best_d = -1, 0.0
+        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
+            if e2 == e:
+                continue
+            q = se3.transform_points(X, model.vertices[model.edges[e2]])
+            d = q[1, :2] - q[0, :2]
+            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
+            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
+                nrm = -nrm  # outward from the face
+            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
+            if beyond > best_d:
+                best, best_d = e2, beyond
+        if best < 0:
             break
+        e = int(best)
     raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
-
-
-def _next_roll_edge(model, X: np.ndarray, g: int, e: int, com: np.ndarray, centre: np.ndarray) -> int:
-    """The edge of unstable face ``g`` (resting at ``X``, reached over edge ``e``) that the roll goes
-    on over: the one the CoM ``com (2,)`` lies furthest beyond (the object falls over it), or, while
-    the CoM lies beyond none of them (behind ``e``, or inside the face by less than the SP margin: let
-    go, the object would fall back or stand on a knife edge), the edge furthest along the roll (the
-    pusher carries it on: the push ends past the highest point of the CoM, ``graph.release_angle``).
-    ``centre (2,)`` is a point inside the face, W. -1 when the face has no other edge."""
-    outward, beyond = {}, {}
-    for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
-        q = se3.transform_points(X, model.vertices[model.edges[e2]])
-        d = q[1, :2] - q[0, :2]
-        nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
-        if np.dot(centre - q[0, :2], nrm) > 0:
-            nrm = -nrm  # outward from the face
-        outward[int(e2)], beyond[int(e2)] = nrm, float(np.dot(com - q[0, :2], nrm))
-    ahead = {k: v for k, v in beyond.items() if k != e}
-    best = max(ahead, key=lambda k: (ahead[k], -k), default=-1)
-    if best >= 0 and ahead[best] > 0.0:
-        return best
-    roll = -outward[e]  # across the face, away from the edge rolled over
-    return max(ahead, key=lambda k: (float(outward[k] @ roll), -k), default=-1)
 
 
 def held_com(poly: np.ndarray, com_W: np.ndarray, margin: float) -> np.ndarray:
