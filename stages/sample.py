@@ -69,10 +69,8 @@ class Params:
     table_clearance: float = 0.01
     #: A contact normal whose z component is below this points under the object.
     under_nz: float = -0.5
-    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad):
-    #: Fig. 5's r3/r4, "too far to be reached". Only a prefilter: the IK and the arms' collision checks
-    #: decide reach; at 120 deg it refused every grasp of a box turned 45 deg in place.
-    away_angle: float = np.radians(150.0)
+    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad).
+    away_angle: float = np.radians(120.0)
     #: IK tolerance (m) and restarts.
     ik_tol: float = 1e-3
     ik_restarts: int = 2
