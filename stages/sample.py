@@ -354,26 +354,30 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
                  None, L, prm, R_WD=X_c[mk[:, 0], :3, :3], alpha=alpha_c[mk[:, 0], mk[:, 1]])
     out["margin"][sp] = m.margin[minv.reshape(-1)]
     out["stable"] = sp
-    # USP: the object on its table contact (poses.table_support, cut by the edge) with both balls,
-    # then with each ball alone.
     us = np.flatnonzero(usp)
     if len(us):
-        com = se3.transform_points(X, model.com)
-        eef_p = np.stack([p_l, p_r], axis=1)
-        eef_n = -np.stack([n_l, n_r], axis=1)  # inward normals
-        uniq, first = np.unique(pose_id[us], return_index=True)
-        polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half)
-                 for p, f in zip(uniq, first, strict=True)}
-        # Held with the SP margin: the CoM that far further out (poses.held_com), one shift per pose.
-        sp_margin = float(tables["placements"].meta["params"]["sp_margin"])
-        shift = {p: poses.held_com(polys[p], com[us[f]], sp_margin) - com[us[f]] for p, f in
-                 zip(polys, first, strict=True)}
-        com[us] += np.stack([shift[int(p)] for p in pose_id[us]])
-        size = np.array([len(polys[int(p)]) for p in pose_id[us]])
-        for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
-            _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
-                       evaluate)
+        _usp_stability(out, us, model, tables, pose_id, g, X, np.stack([p_l, p_r], axis=1),
+                       -np.stack([n_l, n_r], axis=1), half, (mass, L, prm, prm_hold), evaluate)
     return out
+
+
+def _usp_stability(out, us, model, tables, pose_id, g, X, eef_p, eef_n, half, lp: tuple, evaluate) -> None:
+    """The USP candidates ``us`` of :func:`_stability`: the object on its table contact
+    (``poses.table_support``, cut by the table's edge) with both balls, then with each ball alone
+    (``eef_p``, inward ``eef_n (N, 2, 3)``, W), its CoM the SP margin further out (``poses.held_com``).
+    ``lp`` is (mass kg, LP length scale m, both-ball and one-ball ``stability.Params``); fills ``out``."""
+    mass, L, prm, prm_hold = lp
+    com = se3.transform_points(X, model.com)
+    uniq, first = np.unique(pose_id[us], return_index=True)
+    polys = {int(p): poses.table_support(model, X[us[f]], g[us[f]], half) for p, f in zip(uniq, first, strict=True)}
+    # Held with the SP margin: the CoM that far further out (poses.held_com), one shift per pose.
+    sp_margin = float(tables["placements"].meta["params"]["sp_margin"])
+    shift = {p: poses.held_com(polys[p], com[us[f]], sp_margin) - com[us[f]] for p, f in zip(polys, first, strict=True)}
+    com[us] += np.stack([shift[int(p)] for p in pose_id[us]])
+    size = np.array([len(polys[int(p)]) for p in pose_id[us]])
+    for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
+        _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
+                   evaluate)
 
 
 def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate) -> np.ndarray:
