@@ -77,6 +77,19 @@ axis) and ``perception_noise_deg`` (0.5 deg about each axis), what a fiducial-ma
 gives; drawn from the run's seed, so a run stays deterministic. No other ground truth reaches the
 controller; the simulator's state is read otherwise only to log and judge the run.
 
+Yaw servo
+---------
+A pivot vertex slides and the balls roll a little on the object, so a plan run open loop ends a few
+mm and degrees off per pivot, and the errors add up over a gait. While the object stands tilted on its
+vertex with both balls on it (:func:`_servo_rows`), an integral servo on the object's yaw turns both
+balls' targets about the vertical through the perceived pivot vertex, from the perception model's
+frames (``servo_period``, with its noise and latency; :class:`_YawServo`). It aims as a pivoting gait
+would (:func:`_servo_aims`): on a pivot followed by another, at putting the next pivot's vertex on the
+ray to where the plan has it, so that the next pivot, about the right place, turns the object back
+to the planned yaw; on the last pivot before a tumble or the end, at the CoM and the yaw, weighed by
+the success tolerances. A vertex that slid cannot be moved back by a turn; the gait carries what is
+left to the next pivot.
+
 Release and success
 -------------------
 A robot's run ends with its hands off the object: :func:`with_release` appends the release (the
@@ -166,6 +179,7 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pybullet as p
@@ -282,6 +296,10 @@ class Params:
     perception_noise, perception_noise_deg, perception_latency : the one input from outside the
         robot (module docstring, Perception): the object's pose, measured with Gaussian noise of
         this standard deviation per axis (m; deg about each axis) and this latency (s).
+    servo_gain, servo_period, servo_min_tilt, servo_max : the yaw servo on a pivot
+        (module docstring, Yaw servo): its rate (1/s), the perception frame period (s), the
+        planned tilt, as a fraction of the pivot's largest, above which it acts, and the largest
+        shift (m) of a ball's target it may build up; ``servo_gain = 0`` turns it off.
     cache_dir : folder of the convex-decomposition cache ("" = ``<system temp>/pivot-convex``).
     width, height : rendered frames (pixels); the camera is chosen from the scene (:func:`scene_camera`).
     """
@@ -330,6 +348,10 @@ class Params:
     perception_noise: float = 0.001
     perception_noise_deg: float = 0.5
     perception_latency: float = 0.1
+    servo_gain: float = 2.0
+    servo_period: float = 1.0 / 30.0
+    servo_min_tilt: float = 0.5
+    servo_max: float = 0.03
     cache_dir: str = ""
     width: int = 480
     height: int = 360
@@ -877,6 +899,109 @@ class _Perception:
         return se3.make_transform(R @ X[:3, :3], X[:3, 3] + self.sigma[0] * noise[:3])
 
 
+def _stretches(plan: Plan) -> list[tuple[int, int]]:
+    """``(first, end)`` rows of each run of one primitive and kind, in order."""
+    key = plan.primitive.astype(np.int64) * 8 + np.unique(plan.kind, return_inverse=True)[1].reshape(-1)
+    change = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    return list(zip(change.tolist(), np.concatenate([change[1:], [len(plan.t)]]).tolist(), strict=True))
+
+
+def _servo_rows(plan: Plan, sup_vertex: np.ndarray, min_tilt: float) -> np.ndarray:
+    """``(T,)`` bool: the rows where the yaw servo acts (module docstring): pivot rows with both balls on
+    the object and the planned tilt (the angle between the object's up axis and its up axis at the
+    pivot's first row) at least ``min_tilt`` times the pivot's largest, so that the object stands on its
+    pivot vertex (``sup_vertex (T, 2)``, :func:`_support_vertices`) and not on a face."""
+    on = np.zeros(len(plan.t), bool)
+    for s, e in _stretches(plan):
+        if plan.kind[s] != "pivot":
+            continue
+        up = plan.X_WO[s, 2, :3]  # the world's z in O at the pivot's start: the object's up axis
+        tilt = np.arccos(np.clip(np.einsum("tj,j->t", plan.X_WO[s:e, 2, :3], up), -1.0, 1.0))
+        on[s:e] = (tilt >= min_tilt * tilt.max()) & (tilt.max() > 0) & plan.contact[s:e].all(axis=1)
+    return on
+
+
+class ServoAim(NamedTuple):
+    """What the yaw servo steers on each row (:func:`_servo_aims`): ``point_O (T, 3)`` m, a point of the
+    object (frame O) to bring onto its planned position, and ``yaw_weight (T,)``, how much the planned
+    yaw counts against it (0: the point alone)."""
+
+    point_O: np.ndarray
+    yaw_weight: np.ndarray
+
+
+def _servo_aims(plan: Plan, sup_vertex: np.ndarray, hull_O: np.ndarray, com_O: np.ndarray) -> ServoAim:
+    """The pivoting gait's aim (module docstring): on a pivot followed by another pivot, the next pivot's
+    vertex, to be put where the plan has it (that pivot then turns the object back to the planned yaw
+    about the right place); on the last pivot before a tumble or the end, the CoM and the yaw together."""
+    T = len(plan.t)
+    point, weight = np.tile(com_O, (T, 1)), np.ones(T)
+    moves = [(s, e) for s, e in _stretches(plan) if plan.kind[s] in ("pivot", "tumble")]
+    for (s, e), nxt in zip(moves, moves[1:] + [None], strict=False):  # the last has no next
+        if plan.kind[s] == "pivot" and nxt is not None and plan.kind[nxt[0]] == "pivot":
+            point[s:e], weight[s:e] = hull_O[sup_vertex[nxt[0], 0]], 0.0
+    return ServoAim(point, weight)
+
+
+class _YawServo:
+    """The object's yaw servo on a pivot (module docstring). Every perception frame, from the pose then
+    perceived against the plan's at that time, a turn ``delta`` about the vertical through the perceived
+    pivot vertex: the least-squares mean of ``theta``, the turn that puts the aim's point
+    (:func:`_servo_aims`) on the ray to its planned position, and the yaw error, weighed as
+    ``(L theta / tol_pos)^2`` against ``(yaw / tol_yaw)^2`` (``L`` the point's lever, the success
+    tolerances). Both balls' targets turn about that vertical by ``gain * period * delta`` more, integrated
+    in the planned object frame (as the rolling correction) so that the shift turns with the object,
+    faded with it after a contact, capped at ``servo_max``: an integral controller with the tracker's
+    latency inside the loop."""
+
+    def __init__(self, plan: Plan, sup_vertex: np.ndarray, hull_O: np.ndarray, com_O: np.ndarray, params: Params):
+        k = plan.substeps
+        S = (len(plan.t) - 1) * k + 1
+        row = np.minimum(np.arange(S) // k, len(plan.t) - 1)
+        self.on = _servo_rows(plan, sup_vertex, params.servo_min_tilt)[row]
+        self.vertex = hull_O[sup_vertex[row, 0]]
+        self.aim = _servo_aims(plan, sup_vertex, hull_O, com_O)
+        self.row = row
+        self.X_plan = plan.X_WO
+        self.every = max(int(round(params.servo_period / params.dt)), 1)
+        self.step = params.servo_gain * self.every * params.dt
+        self.tol = (params.success_pos, math.radians(params.success_yaw_deg))
+        self.cap = params.servo_max
+        self.shift_O = np.zeros((2, 3))
+
+    def turn(self, X: np.ndarray, j_m: int) -> tuple[float, np.ndarray]:
+        """``(delta rad, pivot vertex (3,) W)`` from the perceived pose ``X`` at step ``j_m``."""
+        r = self.row[j_m]
+        Xp = self.X_plan[r]
+        p_v = X[:3, :3] @ self.vertex[j_m] + X[:3, 3]
+        w_act = (X[:3, :3] @ self.aim.point_O[r] + X[:3, 3] - p_v)[:2]
+        w_pln = (Xp[:3, :3] @ self.aim.point_O[r] + Xp[:3, 3] - p_v)[:2]
+        theta = math.atan2(w_act[0] * w_pln[1] - w_act[1] * w_pln[0], w_act @ w_pln)  # onto the planned ray
+        R = Xp[:3, :3] @ X[:3, :3].T
+        a = float(w_act @ w_act) / self.tol[0] ** 2  # the point's arc L theta against its tolerance
+        b = self.aim.yaw_weight[r] / self.tol[1] ** 2
+        return (a * theta + b * math.atan2(R[1, 0], R[0, 0])) / max(a + b, 1e-12), p_v
+
+    def update(self, j: int, seen: _Perception, R_plan: np.ndarray, balls, contact_start) -> None:
+        """Before step ``j``: a new contact starts with no shift; on a frame of a servoed step, the turn
+        from the latest perceived pose ``seen.measure(j - 1)`` adds to the shift of the balls' centres
+        ``balls (2, 3)`` (W); ``R_plan (S, 3, 3)`` the planned orientations."""
+        for a in range(2):
+            if contact_start[a]:
+                self.shift_O[a] = 0.0
+        if self.step <= 0.0 or not self.on[j] or j % self.every:
+            return
+        delta, p_v = self.turn(seen.measure(j - 1), max(j - 1 - seen.lag, 0))
+        d = self.step * delta * np.cross([0.0, 0.0, 1.0], np.asarray(balls) - p_v) @ R_plan[j]  # planned O frame
+        self.shift_O = self.shift_O + d
+        n = np.linalg.norm(self.shift_O, axis=1, keepdims=True)
+        self.shift_O *= np.minimum(1.0, self.cap / np.maximum(n, 1e-12))
+
+    def offset(self, j: int, R_plan: np.ndarray, keep) -> np.ndarray:
+        """``(2, 3)`` the targets' shift at step ``j`` (W), faded by ``keep (2,)``."""
+        return np.asarray(keep)[:, None] * (self.shift_O @ R_plan[j].T)
+
+
 @dataclass(frozen=True, eq=False)
 class _Targets:
     """Controller targets at every physics step (index j = row * substeps + sub)."""
@@ -1349,6 +1474,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         f_command = (1.0 - params.force_margin) * f_bound
         force = _ForceMonitor(f_bound, dt, int(round(params.force_window / dt)))
         seen = _Perception(S, X_PO, params)
+        servo = _YawServo(plan, sup_vertex, hull_O, com_O, params)
         seen.record(0, obj, cid)
         eye_n = np.eye(n_arm)
         for j in range(1, S):
@@ -1383,6 +1509,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ R_o.T)
             elif roll:
                 x_t = x_t + tg.keep[j][:, None] * (delta_O @ tg.R_o[j].T)
+            servo.update(j, seen, tg.R_o, (ls[0][4], ls[1][4]),
+                         (contact_s[j][0] and not contact_s[j - 1][0], contact_s[j][1] and not contact_s[j - 1][1]))
+            if servo.shift_O.any():
+                x_t = x_t + servo.offset(j, tg.R_o, tg.keep[j])
             for a in range(2):
                 if follow_s[j][a] <= 0.0:
                     drift[a] = None
