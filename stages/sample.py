@@ -69,8 +69,10 @@ class Params:
     table_clearance: float = 0.01
     #: A contact normal whose z component is below this points under the object.
     under_nz: float = -0.5
-    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad).
-    away_angle: float = np.radians(120.0)
+    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad):
+    #: Fig. 5's r3/r4, "too far to be reached". Only a prefilter: the IK and the arms' collision checks
+    #: (with ``arm_clearance``) decide reach; at 120 deg it refused every grasp of a box turned 45 deg in place.
+    away_angle: float = np.radians(150.0)
     #: The arms' links keep this far from the object (m), the sticks that carry the balls
     #: ``stick_clearance``, in every check of the planner (the grasps here; pivots, tumbles, holds and
     #: transits read them from ``grasps.parquet``), or fail as ``object_clearance``. Physics counts a
