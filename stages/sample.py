@@ -24,7 +24,8 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    no posture moves (``CollisionFn.object_blocks_arm``: link 1 only turns about its own axis), so
    every candidate of the pose collides whatever its IK (one test per pose);
 4. ``ik_unreachable`` / ``joint_limit``: batched position IK of each ball centre (``stages.robot``);
-5. ``env_collision:*`` / ``self_collision:*``: the arms against the table, obstacles, object and
+5. ``env_collision:*`` / ``self_collision:*`` / ``object_clearance:*``: the arms against the table,
+   obstacles, object (their links kept ``arm_clearance``, the sticks ``stick_clearance``, from it) and
    each other; a colliding candidate gets new IK solutions (from other library postures near its
    target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
