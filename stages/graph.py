@@ -59,7 +59,7 @@ from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
-from stages.sample import make_scene_collision_fn
+from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import Scene, load_scene
 
 
@@ -225,7 +225,8 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     grasps = artifacts.read_table(sd / "grasps.parquet", "grasps")
     X_WO = se3.matrix_from_columns(ps.columns)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads)
+    collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads,
+                                      clearance_of(grasps.meta["params"]))
     r = scene.robot.ball_radius
     w = scene.planner.weights
     G = len(grasps)

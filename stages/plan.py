@@ -56,7 +56,7 @@ from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
-from stages.sample import make_scene_collision_fn, placement_pose
+from stages.sample import clearance_of, make_scene_collision_fn, placement_pose
 from stages.scene import Scene, load_scene
 
 
@@ -130,7 +130,8 @@ class _Context:
                       zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
         self.X_WO = se3.matrix_from_columns(self.poses.columns)
         self.robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-        self.collide = make_scene_collision_fn(scene, self.robot, self.tables["mesh"])
+        self.collide = make_scene_collision_fn(scene, self.robot, self.tables["mesh"],
+                                               clearance=clearance_of(self.grasps.meta["params"]))
         con = self.tables["contacts"]
         self.p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
         self.n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
@@ -697,7 +698,8 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
     plan = search(ctx, params)
     elapsed = time.perf_counter() - t0
     meta_params = {**{k: v for k, v in asdict(params).items() if k != "mpc_helper"},
-                   "weights": asdict(scene.planner.weights)}
+                   "weights": asdict(scene.planner.weights), "arm_clearance": ctx.collide.link_clearance,
+                   "stick_clearance": ctx.collide.tool_clearance}
     meta = artifacts.make_meta("plan", meta_params, ctx.inputs, producer)
     for s in plan["steps"]:
         for key in ("pose_from", "pose_to"):

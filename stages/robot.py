@@ -1090,7 +1090,8 @@ def _rows(X: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), object_mesh=None,
-                      margin: float = 0.0, table_depth: float = 1.0, threads: int = 1) -> CollisionFn:
+                      margin: float = 0.0, table_depth: float = 1.0, threads: int = 1,
+                      link_clearance: float = 0.0, tool_clearance: float | None = None) -> CollisionFn:
     """Build a batched collision checker for both arms of ``robot`` in a scene (paper §4.2).
 
     Parameters
@@ -1106,6 +1107,10 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
         Names default to ``obstacle_<i>``.
     object_mesh : trimesh.Trimesh of the object in its frame O, or None.
     margin : m; primitives closer than this count as colliding.
+    link_clearance : m; the arms' links other than the ball end-effectors closer than this to the
+        object (but not touching it, by ``margin``) fail with ``object_clearance:<link>/object``.
+    tool_clearance : m; the same for the ball's parent link (the stick that carries it); None: as
+        ``link_clearance``.
     threads : worker threads, each checking a slice of the rows (batches of at least 1024 rows); the
         numpy kernels release the GIL, python-fcl does not, and trimesh's inside test (not thread-safe)
         runs under a lock. Every row's answer depends on that row alone.
@@ -1115,7 +1120,8 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
     A ``CollisionFn``: ``check(q_left (N, n), q_right (N, n), X_WO (N, 4, 4) | None = None,
     touching (N, 2) bool | None = None) -> (ok (N,) bool, reason (N,) str)``.
     """
-    return CollisionFn(robot, table, obstacles, object_mesh, margin, table_depth, threads)
+    return CollisionFn(robot, table, obstacles, object_mesh, margin, table_depth, threads,
+                       (link_clearance, link_clearance if tool_clearance is None else tool_clearance))
 
 
 class CollisionFn:
@@ -1128,7 +1134,10 @@ class CollisionFn:
     the first colliding pair found, in this order: ``env_collision:<link>/table``,
     ``env_collision:<link>/<obstacle>``, ``self_collision:<link>/<trunk link>``,
     ``self_collision:<left link>/<right link>``, ``self_collision:<link>/<link>`` (one arm),
-    ``env_collision:<link>/object``; ``"ok"`` when free. Each stage only looks at the rows still free.
+    ``env_collision:<link>/object``, ``object_clearance:<link>/object`` (a link other than the ball
+    within ``link_clearance``, or ``tool_clearance`` for the ball's parent link, of the object, the
+    lowest such capsule); ``"ok"`` when free. Each stage
+    only looks at the rows still free.
     With ``blame=True`` it also returns ``arms (N, 2)`` bool: the arms (left, right) whose links the
     reported pair names (both for a left/right pair; none for a free row).
 
@@ -1140,11 +1149,15 @@ class CollisionFn:
     """
 
     def __init__(self, robot: Robot, table, obstacles, object_mesh, margin: float, table_depth: float,
-                 threads: int = 1):
+                 threads: int = 1, clearance: tuple[float, float] = (0.0, 0.0)):
         self.arms = (robot.arm("left"), robot.arm("right"))
         self.threads = int(threads)
         self.static = st = robot.static
         self.margin = float(margin)
+        if not min(clearance) >= 0:
+            raise ValueError(f"link and tool clearances must be >= 0 m, got {clearance}")
+        #: m, of the object: links other than the ball and its parent link, and that parent link.
+        self.link_clearance, self.tool_clearance = float(clearance[0]), float(clearance[1])
         self.boxes, self.caps, self.cyls, self.meshes = [], [], [], []
         if table is not None:
             (sx, sy), top_z = table
@@ -1310,19 +1323,34 @@ class CollisionFn:
 
         # The object; a touching ball is exempt.
         if self.object is not None and X_WO is not None:
-            for s, a in enumerate(arms):
-                rows = st.live()
-                if not len(rows):
-                    break
-                A, B = ends[s]
-                test = np.ones((len(a.cap_names), len(rows)), bool)
-                test[a.cap_link == a.eef_index] = ~touch[rows, s]
-                k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), _rows(A, rows), _rows(B, rows),
-                                  a.cap_r, mg_obj, test)
-                st.fail(rows[k], "env_collision", np.asarray(a.cap_names)[c], "object", s)
+            for s in range(len(arms)):
+                self._object_test(st, s, ends[s], X_WO, touch, mg_obj)
         return st.alive, st.reason.astype(str), st.blame
 
-
+    def _object_test(self, st: _Rows, s: int, ends, X_WO: np.ndarray, touch: np.ndarray, mg_obj: float) -> None:
+        """Arm ``s``'s capsules against the object on the live rows: a link (the touching ball exempt)
+        within ``mg_obj`` fails as ``env_collision``, one (not a ball) within ``link_clearance`` (its
+        parent link: ``tool_clearance``) as ``object_clearance``. One mesh test at the clearances;
+        only its hits are tested again at ``mg_obj`` to tell the two apart."""
+        a, rows = self.arms[s], st.live()
+        if not len(rows):
+            return
+        A, B = _rows(ends[0], rows), _rows(ends[1], rows)
+        X_OW = se3.invert(X_WO[rows])
+        test = np.ones((len(a.cap_names), len(rows)), bool)
+        ball = a.cap_link == a.eef_index
+        test[ball] = ~touch[rows, s]
+        tool = a.cap_link == a.eef_index - 1
+        wide = np.where(ball, mg_obj, np.maximum(mg_obj, np.where(tool, self.tool_clearance, self.link_clearance)))
+        k, c = _mesh_hits(self.object, X_OW, A, B, a.cap_r, wide, test)
+        names = np.asarray(a.cap_names)
+        if not np.any(wide > mg_obj) or not len(k):
+            st.fail(rows[k], "env_collision", names[c], "object", s)
+            return
+        h = np.unique(k)  # rows within the clearance: which of them touch?
+        kk, cc = _mesh_hits(self.object, X_OW[h], A[:, :, h], B[:, :, h], a.cap_r, mg_obj, test[:, h])
+        st.fail(rows[h[kk]], "env_collision", names[cc], "object", s)
+        st.fail(rows[k], "object_clearance", names[c], "object", s)
 
     def object_blocks_arm(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Object poses at which some posture-independent part of an arm (``_core_balls``) overlaps the
@@ -1434,8 +1462,9 @@ _CONTAINS_LOCK = threading.Lock()
 
 
 def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radius: np.ndarray,
-               margin: float, test: np.ndarray):
-    """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh).
+               margin: float | np.ndarray, test: np.ndarray):
+    """Capsules ``A, B (3, C, m)`` (world) against a mesh posed by ``X_OW (m, 4, 4)`` (world to mesh),
+    each capsule inflated by ``margin`` (m; one for all, or ``(C,)``).
 
     Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
     box (in the mesh frame, grown by the capsule radius), then separation from its convex hull: the

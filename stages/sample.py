@@ -24,7 +24,8 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    no posture moves (``CollisionFn.object_blocks_arm``: link 1 only turns about its own axis), so
    every candidate of the pose collides whatever its IK (one test per pose);
 4. ``ik_unreachable`` / ``joint_limit``: batched position IK of each ball centre (``stages.robot``);
-5. ``env_collision:*`` / ``self_collision:*``: the arms against the table, obstacles, object and
+5. ``env_collision:*`` / ``self_collision:*`` / ``object_clearance:*``: the arms against the table,
+   obstacles, object (their links kept ``arm_clearance``, the sticks ``stick_clearance``, from it) and
    each other; a colliding candidate gets new IK solutions (from other library postures near its
    target), for the arms the colliding pair involves, up to ``collision_retries`` times;
 6. ``unstable``: the stability LP (``stages.stability``, eq. 1–4): in SP the object must stay in
@@ -69,8 +70,19 @@ class Params:
     table_clearance: float = 0.01
     #: A contact normal whose z component is below this points under the object.
     under_nz: float = -0.5
-    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad).
-    away_angle: float = np.radians(120.0)
+    #: A contact normal is "away" when its horizontal part turns more than this from the shoulder (rad):
+    #: Fig. 5's r3/r4, "too far to be reached". Only a prefilter: the IK and the arms' collision checks
+    #: (with ``arm_clearance``) decide reach; at 120 deg it refused every grasp of a box turned 45 deg in place.
+    away_angle: float = np.radians(150.0)
+    #: The arms' links keep this far from the object (m), the sticks that carry the balls
+    #: ``stick_clearance``, in every check of the planner (the grasps here; pivots, tumbles, holds and
+    #: transits read them from ``grasps.parquet``), or fail as ``object_clearance``. Physics counts a
+    #: robot-object contact from where Bullet reports contact points: 3.6 mm apart for the arm's
+    #: 45-101 mm capsules, 1.0 mm for the 8 mm stick (against the object's hulls, measured); its
+    #: compliant arms came up to 3.0 mm (links) and 2.7 mm (sticks) closer to the object than planned
+    #: while the object kept to its plan.
+    arm_clearance: float = 0.007
+    stick_clearance: float = 0.004
     #: IK tolerance (m) and restarts.
     ik_tol: float = 1e-3
     ik_restarts: int = 2
@@ -134,14 +146,23 @@ def trunk_obstacles(robot) -> list[ObstacleGeometry]:
             for n, X, h in zip(st.box_names, st.box_X_W, st.box_half, strict=True)]
 
 
-def make_scene_collision_fn(scene: Scene, robot, object_mesh, threads: int = 1):
-    """The robot's batched collision checker against the scene's table, obstacles and the object."""
+def make_scene_collision_fn(scene: Scene, robot, object_mesh, threads: int = 1,
+                            clearance: tuple[float, float] = (0.0, 0.0)):
+    """The robot's batched collision checker against the scene's table, obstacles and the object, its
+    links kept ``clearance = (arm, stick)`` (m, ``Params.arm_clearance``, ``stick_clearance``) from it."""
     obstacles = []
     for ob in scene.obstacle_geometries():
         dims = {"box": ob.size, "cylinder": (ob.radius, ob.height), "mesh": (ob.vertices, ob.faces)}[ob.kind]
         obstacles.append((ob.kind, dims, ob.X_WOb, ob.name))
     return make_collision_fn(robot, (tuple(scene.table.size), 0.0), obstacles, object_mesh,
-                             table_depth=scene.table.height, threads=threads)
+                             table_depth=scene.table.height, threads=threads, link_clearance=clearance[0],
+                             tool_clearance=clearance[1])
+
+
+def clearance_of(params: dict) -> tuple[float, float]:
+    """``(arm_clearance, stick_clearance)`` (m) from an artifact's parameters (``grasps.parquet``'s, which
+    the grasps were checked with, or ``plan.json``'s), for the later stages' checks; 0 when absent."""
+    return float(params.get("arm_clearance", 0.0)), float(params.get("stick_clearance", 0.0))
 
 
 def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: poses.PoseSet, robot, collide,
@@ -467,7 +488,8 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     ps = poses.sample_poses(model, X0, g0, scene.table.size, obstacles, pp, goal=(Xg, gg))
     t1 = time.perf_counter()
     # Robot set-up, before the refinement: self-collision pairs and IK seed libraries.
-    collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads)
+    collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads,
+                                      (params.arm_clearance, params.stick_clearance))
     robot.prepare_ik()
     t2 = time.perf_counter()
     rng = np.random.default_rng(pl.seed)

@@ -99,7 +99,7 @@ from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import load_robot
-from stages.sample import make_scene_collision_fn
+from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import load_scene
 
 ARMS = ("left", "right")
@@ -638,12 +638,14 @@ class _Env:
     mp: mpc.Params
     params: Params
     sp_margin: float = 0.005  # the analysis' (placements.parquet parameters)
+    clearance: tuple = (0.0, 0.0)  # m, arm and stick, the sampler's (plan.json parameters)
     _collide: object = None
 
     @property
     def collide(self):
         if self._collide is None:  # built on the first tumble: pivots and transits of the plan need none here
-            self._collide = make_scene_collision_fn(self.scene, self.robot, self.mesh)
+            self._collide = make_scene_collision_fn(self.scene, self.robot, self.mesh,
+                                                    clearance=self.clearance)
         return self._collide
 
 
@@ -1066,8 +1068,10 @@ def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
 # The stage
 
 
-def make_env(scene, model, tables: dict, robot, params: Params, collide=None) -> _Env:
-    """What the tumbles of a plan need (``collide``: the scene's checker, built on first use if None)."""
+def make_env(scene, model, tables: dict, robot, params: Params, collide=None,
+             clearance: tuple[float, float] = (0.0, 0.0)) -> _Env:
+    """What the tumbles of a plan need (``collide``: the scene's checker, built on first use if None,
+    its links kept ``clearance = (arm, stick)`` (m, ``stages.sample.Params``) from the object)."""
     con = tables["contacts"]
     mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
                  mu_table=params.friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
@@ -1075,7 +1079,8 @@ def make_env(scene, model, tables: dict, robot, params: Params, collide=None) ->
                 p_O=np.stack([con["px"], con["py"], con["pz"]], axis=1),
                 n_O=np.stack([con["nx"], con["ny"], con["nz"]], axis=1), r=scene.robot.ball_radius,
                 inertia=np.asarray(tables["summary"]["inertia"]), mp=mp, params=params,
-                sp_margin=float(tables["placements"].meta["params"]["sp_margin"]), _collide=collide)
+                sp_margin=float(tables["placements"].meta["params"]["sp_margin"]), clearance=clearance,
+                _collide=collide)
 
 
 def make_timeline(env: _Env) -> _Timeline:
@@ -1104,7 +1109,8 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    env = make_env(scene, model, tables, robot, params)
+    env = make_env(scene, model, tables, robot, params,
+                   clearance=clearance_of(plan.get("meta", {}).get("params", {})))
     p_O, n_O, r, mp, inertia = env.p_O, env.n_O, env.r, env.mp, env.inertia
     dt = mp.dt
     tl = make_timeline(env)

@@ -20,7 +20,9 @@ segments (it starts and ends in contact and moves along the normal there); the r
 configurations themselves, 3 cm off the surface, and everything between them are tested in full,
 between them with the object's margin raised to ``Params.clearance`` (kept only when the retreat and
 approach configurations pass it). The still arm's ball is always exempt from the object test: it does
-not move, and whether it may touch the object is the grasp's business, not the transit's.
+not move, and whether it may touch the object is the grasp's business, not the transit's. The arms'
+other links keep the checker's own clearances from the object everywhere, the contact ends, retreat and
+approach included (``stages.sample.Params.arm_clearance``: physics touches what grazes).
 
 Motion checking. A straight joint-space segment is checked at states spaced so that no point of the
 moving arm moves more than ``Params.resolution`` (m) between two of them: with ``L_j`` a bound on the

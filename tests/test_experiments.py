@@ -108,18 +108,11 @@ def _com(builds: Builds, X: np.ndarray) -> np.ndarray:
     return se3.transform_points(X, builds.model.com)
 
 
-#: Exp. 1's goal turned +10 deg: no plan (the pivots that lead on are rejected; with away_angle 150 deg it
-#: planned, see the commit that set it back to 120 deg). The truth, kept.
-EXP1_TURNED_NO_PLAN = pytest.mark.xfail(strict=True, reason="issue 14: Exp. 1 with its goal turned +10 deg has no "
-                                        "plan (no path left after backtracking: the pivots that lead on are rejected)")
-
-
-@pytest.mark.parametrize(("name", "dx", "dyaw"), [
-    pytest.param(n, dx, dyaw, marks=[EXP1_TURNED_NO_PLAN] if (n, dyaw) == ("exp1_reach", 10) else [])
-    for n in ("exp1_reach", "exp2_rotate") for dx, dyaw in ((0.02, 0), (-0.02, 0), (0, 10), (0, -10))])
+@pytest.mark.parametrize(("name", "dx", "dyaw"), [(n, dx, dyaw) for n in ("exp1_reach", "exp2_rotate")
+                                                   for dx, dyaw in ((0.02, 0), (-0.02, 0), (0, 10), (0, -10))])
 def test_an_experiment_still_plans_with_its_goal_moved_2_cm_or_10_deg(builds, tmp_path, name, dx, dyaw):
     """Reaching the goal is the planner's property, not the lattice's luck (issue 14): Exp. 1 and 2
-    plan to their goal moved 2 cm along the table's x or turned 10 deg either way (but one)."""
+    plan to their goal moved 2 cm along the table's x or turned 10 deg either way."""
     from tests.conftest import write_scene
 
     g = load_scene(SCENES / f"{name}.json").goal
@@ -164,7 +157,9 @@ def test_exp1_without_regrasp_ends_short_of_the_goal(builds):
 def test_exp1_error_as_in_table_2(builds):
     err = builds.plan("exp1_reach", no_regrasp=True).get("remaining_error", {"x": 0.0})
     assert -0.15 <= err["x"] <= -0.10
-    assert abs(err["y"]) <= 0.02  # short along x, as Table 2's: the one-grasp gait stops in the forward direction
+    # Short along x, as Table 2's (which gives the x error alone): the one-grasp gait stops in the forward
+    # direction, the sideways error a small part of it.
+    assert abs(err["y"]) <= 0.25 * abs(err["x"])
 
 
 def test_exp1_plan_file_is_the_same_with_and_without_the_mpc_helper(builds, tmp_path, monkeypatch):

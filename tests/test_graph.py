@@ -310,3 +310,69 @@ def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(sma
     assert turned.any() and np.isin(ref["status"][turned], ["ok", "unstable"]).all()
     assert (ref["status"][turned] == "ok").any()
     assert (got["status"][~turned] == ref["status"][~turned]).all()
+
+
+def _pivot_past_the_wrist():
+    """The SDA5F of the default scene holding a 0.3 x 0.4 x 0.2 m box by the centres of its side faces
+    while it pivots 10 deg about a bottom corner (9 samples), and the left wrist's capsule (``(3,)``
+    first end and axis, O, at the middle sample) with its radius: ``(robot, X_traj, p_O, n_O, q0, wrist)``."""
+    import trimesh
+
+    from stages.robot import _capsules_W, load_robot, make_collision_fn
+    from stages.scene import load_scene
+    from tests.conftest import REPO
+
+    scene = load_scene(REPO / "data" / "scenes" / "default.json")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    r, size, v = scene.robot.ball_radius, np.array([0.3, 0.4, 0.2]), np.array([-0.15, -0.2, -0.1])
+    X0 = se3.make_transform(np.eye(3), [0.0, 0.0, 0.1])
+    turns = [Rotation.from_rotvec([0.0, 0.0, a]).as_matrix() for a in np.linspace(0.0, np.radians(10.0), 9)]
+    X_traj = np.stack([X0 @ se3.make_transform(R, v - R @ v) for R in turns])[None]
+    p_O, n_O = np.array([[[0.0, 0.2, 0.0], [0.0, -0.2, 0.0]]]), np.array([[[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]])
+    q0 = np.stack([robot.ik(arm, se3.transform_points(X0, p_O[0, k] + r * n_O[0, k])[None],
+                            rng=np.random.default_rng(0)).q[0] for k, arm in enumerate(("left", "right"))])[None]
+    box = make_collision_fn(robot, ((0.9, 0.6), 0.0), object_mesh=trimesh.creation.box(size), link_clearance=0.007)
+    ok, _, q = graph.check_arm_motion(robot, box, X_traj, p_O, n_O, q0, r, graph.Params())
+    assert ok[0]  # the box alone keeps clear of the arms
+    a = robot.arm("left")
+    c = list(a.cap_names).index("left_link_6_b")
+    A, B = _capsules_W(a, q[4, 0, 0][:, None])
+    X_OW = se3.invert(X_traj[0, 4])
+    ends = se3.transform_points(X_OW, np.stack([A[:, c, 0], B[:, c, 0]]))
+    return robot, X_traj, p_O, n_O, q0, (ends[0], ends[1] - ends[0], a.cap_r[c]), size, r
+
+
+@pytest.mark.parametrize("gap, reason", [(0.003, "object_clearance:left_link_6_b/object"), (0.015, "ok")])
+def test_a_pivot_whose_wrist_passes_within_a_few_mm_of_the_object_is_refused(gap, reason):
+    """The box of :func:`_pivot_past_the_wrist` with a 1 cm knob ``gap`` m under the left wrist at the
+    pivot's middle sample: 3 mm is within the 7 mm arm clearance (``stages.sample.Params.arm_clearance``)
+    and refused, although nothing touches (the check without the clearance passes it); 15 mm passes."""
+    import trimesh
+
+    from stages.robot import make_collision_fn
+
+    robot, X_traj, p_O, n_O, q0, (A, u, rad), size, r = _pivot_past_the_wrist()
+    u = u / np.linalg.norm(u)
+    down = np.array([0.0, 0.0, -1.0]) + u[2] * u  # perpendicular to the axis: its first end is the nearest
+    down /= np.linalg.norm(down)
+    knob = trimesh.creation.icosphere(subdivisions=3, radius=0.005)
+    knob.apply_translation(A + down * (rad + gap + 0.005))
+    mesh = trimesh.util.concatenate([trimesh.creation.box(size), knob])
+    checks = {cl: make_collision_fn(robot, ((0.9, 0.6), 0.0), object_mesh=mesh, link_clearance=cl)
+              for cl in (0.0, 0.007)}
+    ok, why, _ = graph.check_arm_motion(robot, checks[0.007], X_traj, p_O, n_O, q0, r, graph.Params())
+    assert why.tolist() == [reason] and ok[0] == (reason == "ok")
+    assert graph.check_arm_motion(robot, checks[0.0], X_traj, p_O, n_O, q0, r, graph.Params())[0][0]
+
+
+def test_the_later_stages_check_with_the_samplers_clearances(small_build):
+    """``grasps.parquet`` records the clearances its grasps were checked with; the graph and the plan
+    build their checkers with them, and ``plan.json`` passes them on to the motion stage."""
+    from stages import artifacts, sample
+
+    _, b = small_build
+    want = (sample.Params().arm_clearance, sample.Params().stick_clearance)
+    assert want[0] > want[1] > 0
+    grasps = artifacts.read_table(b / "sample" / "grasps.parquet", "grasps")
+    assert sample.clearance_of(grasps.meta["params"]) == want
+    assert sample.clearance_of(artifacts.read_json(b / "plan.json", "plan")["meta"]["params"]) == want

@@ -81,7 +81,7 @@ def test_rejects_carry_known_reason_codes(ctx):
     _, b, *_ = ctx
     rej = artifacts.read_table(b / "sample" / "grasp_rejects.parquet", "grasp_rejects")
     known = ("eef_under_object", "normal_away", "ik_unreachable", "joint_limit", "env_collision:", "self_collision:",
-             "unstable")
+             "object_clearance:", "unstable")
     assert len(rej) > 0
     assert all(str(r).startswith(known) for r in rej["reason"])
 

@@ -391,6 +391,66 @@ def test_object_only_the_touching_ball_may_touch_it(scene_robot):
     assert not big(q, q, X_WO, np.array([[False, False]]))[0][0]
 
 
+def _ball_near_link(robot, arm: str, q: np.ndarray, link: str, gap: float, radius: float = 0.005,
+                    end: int = 0):
+    """A small sphere mesh (W) ``gap`` m from the surface of ``link``'s capsule at ``q``, off its
+    ``end`` (0 first, 1 second), straight down as far as the capsule's axis allows."""
+    a = robot.arm(arm)
+    c = list(a.cap_names).index(link)
+    A, B = rb._capsules_W(a, q[:, None])
+    axis = (B[:, c, 0] - A[:, c, 0]) / np.linalg.norm(B[:, c, 0] - A[:, c, 0])
+    down = np.array([0.0, 0.0, -1.0]) - axis * -axis[2]  # perpendicular to the axis: the end is the nearest
+    down /= np.linalg.norm(down)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    ball.apply_translation((A, B)[end][:, c, 0] + down * (a.cap_r[c] + gap + radius))
+    return ball
+
+
+@pytest.mark.parametrize("gap, reason", [(-0.002, "env_collision:left_link_6_b/object"),
+                                         (0.003, "object_clearance:left_link_6_b/object"), (0.012, "ok")])
+def test_a_link_within_the_clearance_of_the_object_fails_as_object_clearance(scene_robot, gap, reason):
+    """With a 7 mm link clearance, the wrist 2 mm into the object collides, 3 mm off it is refused for
+    its clearance and 12 mm off it passes (the sphere's facets sit within 0.1 mm of the sphere)."""
+    q = scene_robot.arms["left"].q_rest
+    obj = _ball_near_link(scene_robot, "left", q, "left_link_6_b", gap)
+    check = make_collision_fn(scene_robot, table=TABLE, object_mesh=obj, link_clearance=0.007)
+    ok, why = check(q[None], q[None], np.eye(4)[None], np.array([[False, False]]))
+    assert why.tolist() == [reason] and ok[0] == (reason == "ok")
+    # Without the clearance only the overlap counts.
+    ok0, why0 = make_collision_fn(scene_robot, table=TABLE, object_mesh=obj)(q[None], q[None], np.eye(4)[None])
+    assert why0.tolist() == [reason if gap < 0 else "ok"]
+
+
+@pytest.mark.parametrize("gap, reason", [(0.003, "object_clearance:left_stick/object"), (0.005, "ok")])
+def test_the_stick_keeps_its_own_clearance(scene_robot, gap, reason):
+    """The ball's parent link (the stick) keeps ``tool_clearance`` (4 mm here), the other links 7 mm: a
+    sphere 3 mm off the stick's end away from the ball is refused, 5 mm off passes."""
+    a = scene_robot.arms["left"]
+    q = a.q_rest
+    c = list(a.cap_names).index("left_stick")
+    A, B = rb._capsules_W(a, q[:, None])
+    p_ball = scene_robot.eef_position("left", q[None])[0]
+    far = int(np.linalg.norm(B[:, c, 0] - p_ball) > np.linalg.norm(A[:, c, 0] - p_ball))
+    obj = _ball_near_link(scene_robot, "left", q, "left_stick", gap, end=far)
+    check = make_collision_fn(scene_robot, table=TABLE, object_mesh=obj, link_clearance=0.007, tool_clearance=0.004)
+    assert check(q[None], q[None], np.eye(4)[None], np.array([[False, False]]))[1].tolist() == [reason]
+
+
+def test_the_touching_ball_is_exempt_from_the_clearance(scene_robot):
+    """A box face tangent to the touching ball: its stick ends at the ball's centre, 12 mm (20 mm ball
+    radius less 8 mm stick radius) or more off the face, so a 7 mm clearance passes it. A ball keeps
+    no clearance (where it touches is the grasp's business): a face 2 mm off an untouching ball passes."""
+    arm = scene_robot.arms["left"]
+    q = arm.q_rest[None]
+    p_ball = scene_robot.eef_position("left", q)[0]
+    box = trimesh.creation.box((0.3, 0.3, 0.3))
+    check = make_collision_fn(scene_robot, table=TABLE, object_mesh=box, link_clearance=0.007)
+    X_WO = se3.make_transform(np.eye(3), p_ball - [0.0, 0.17, 0.0])[None]  # the +y face on the ball
+    assert check(q, q, X_WO, np.array([[True, False]]))[1].tolist() == ["ok"]
+    X_WO = se3.make_transform(np.eye(3), p_ball - [0.0, 0.172, 0.0])[None]  # 2 mm off the ball
+    assert check(q, q, X_WO, np.array([[False, False]]))[1].tolist() == ["ok"]
+
+
 def test_collision_batch_equals_loop(scene_robot):
     rng = np.random.default_rng(8)
     arm = scene_robot.arms["left"]

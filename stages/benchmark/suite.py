@@ -204,7 +204,9 @@ def object_cases(out: Path, template: dict, family, prm: SuiteParams) -> list[di
     scene0 = load_scene(prm.template)
     robot = load_robot(scene0.robot.urdf_path, scene0.base_transform(), tuple(scene0.robot.eef_links),
                        ik_params=IKParams(min_chunk=1024))
-    collide = sample_stage.make_scene_collision_fn(scene0, robot, tables["mesh"])
+    collide = sample_stage.make_scene_collision_fn(scene0, robot, tables["mesh"],
+                                                   clearance=(sample_stage.Params().arm_clearance,
+                                                              sample_stage.Params().stick_clearance))
     robot.prepare_ik()
     area = reach_area(template, robot, prm)
     g0 = upright_placement(model)
