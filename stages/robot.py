@@ -998,6 +998,7 @@ class _Mesh:
     mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
     coarse: object  # its simplification (stages.simplify.collision_mesh): the same inside answer for
     coarse_tol: float  # ... points farther than this (m) from the surface; 0 when it is the mesh
+    inner: np.ndarray  # (S, 4) spheres (centre, radius) inside the solid: a capsule reaching one hits
 
 
 def _make_mesh(mesh, where: str) -> _Mesh:
@@ -1027,9 +1028,72 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
     convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
     coarse = collision_mesh(mesh) if not convex else CollisionMesh(mesh, 0.0)
-    return _Mesh(fcl_obj=fcl.CollisionObject(bvh, fcl.Transform()), centre=centre,
-                 radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo, hi=hi, planes=planes,
-                 convex=convex, mesh=mesh, coarse=coarse.mesh, coarse_tol=coarse.tolerance)
+    fcl_obj = fcl.CollisionObject(bvh, fcl.Transform())
+    inner = _inner_spheres(coarse.mesh, coarse.tolerance, fcl_obj) if mesh.is_watertight else np.zeros((0, 4))
+    return _Mesh(fcl_obj=fcl_obj, centre=centre, radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo,
+                 hi=hi, planes=planes, convex=convex, mesh=mesh, coarse=coarse.mesh, coarse_tol=coarse.tolerance,
+                 inner=inner)
+
+
+def _inner_spheres(coarse, tol: float, fcl_obj, cells: int = 12, most: int = 48) -> np.ndarray:
+    """Up to ``most`` spheres ``(S, 4)`` (centre, radius; mesh frame, m) inside a closed mesh, for
+    :func:`_mesh_hits`' exact early accept: a capsule that reaches one crosses or lies in the solid.
+
+    Centres are the points of a ``cells``-per-longest-side grid that lie inside (the parity of their
+    vertical ray's crossings of ``coarse``, the simplified surface, exact for points farther than
+    ``tol`` from the true one); each radius is the centre's distance to the planning mesh (python-fcl
+    on its BVH), shrunk by 1e-6 relative and 1e-7 m for rounding. Largest first, a centre inside 3/4
+    of a chosen sphere's radius is skipped (a greedy cover, as a medial-axis sphere tree starts).
+    """
+    import fcl
+
+    lo, hi = coarse.bounds
+    h = float((hi - lo).max()) / cells
+    # Columns off the grid's symmetry lines by an irrational fraction, so that no ray meets an edge.
+    xs, ys, zs = (np.arange(lo[k] + h / 2, hi[k], h) + h * 1e-3 * np.sqrt(k + 2) for k in range(3))
+    inside = _column_parity(np.asarray(coarse.triangles), xs, ys, zs)
+    pts = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), -1)[inside]
+    probe = fcl.CollisionObject(fcl.Sphere(1e-9), fcl.Transform())
+    d = np.empty(len(pts))
+    for i, p in enumerate(pts):
+        probe.setTransform(fcl.Transform(p))
+        d[i] = fcl.distance(probe, fcl_obj, fcl.DistanceRequest(), fcl.DistanceResult())
+    r = d * (1 - 1e-6) - 1e-7
+    good = (d > tol) & (r > 0)
+    pts, r = pts[good], r[good]
+    chosen: list[int] = []
+    for i in np.argsort(-r, kind="stable"):
+        if len(chosen) == most:
+            break
+        if not chosen or np.all(np.linalg.norm(pts[chosen] - pts[i], axis=1) >= 0.75 * r[chosen]):
+            chosen.append(int(i))
+    return np.column_stack([pts[chosen], r[chosen]]) if chosen else np.zeros((0, 4))
+
+
+def _column_parity(tri: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray) -> np.ndarray:
+    """Inside test ``(X, Y, Z)`` bool of the grid points of a closed mesh ``tri (F, 3, 3)``: an odd
+    number of surface crossings above the point on its vertical line (Jordan parity). A column that
+    passes within 1e-9 (barycentric) of a triangle's edge is reported outside throughout."""
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    px, py = X.ravel()[:, None], Y.ravel()[:, None]  # (Cn, 1)
+    above = np.zeros((len(px), len(zs)), np.int64)
+    grazing = np.zeros(len(px), bool)
+    step = max(1, 1_000_000 // len(px))
+    for s in range(0, len(tri), step):
+        a, b, c = tri[s:s + step, 0], tri[s:s + step, 1], tri[s:s + step, 2]
+        det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+        flat = np.abs(det) < 1e-15  # a vertical triangle: its neighbours count the crossing
+        det = np.where(flat, 1.0, det)
+        u = ((b[:, 0] - px) * (c[:, 1] - py) - (c[:, 0] - px) * (b[:, 1] - py)) / det
+        v = ((c[:, 0] - px) * (a[:, 1] - py) - (a[:, 0] - px) * (c[:, 1] - py)) / det
+        w = 1.0 - u - v
+        bary = np.minimum(np.minimum(u, v), w)
+        grazing |= np.any((np.abs(bary) <= 1e-9) & ~flat, axis=1)
+        k, f = np.nonzero((bary > 0) & ~flat)
+        zc = u[k, f] * a[f, 2] + v[k, f] * b[f, 2] + w[k, f] * c[f, 2]
+        np.add.at(above, k, zc[:, None] > zs[None, :])
+    inside = (above % 2 == 1) & ~grazing[:, None]
+    return inside.reshape(len(xs), len(ys), len(zs))
 
 
 def _capsules_W(a: Arm, qT: np.ndarray):
@@ -1329,28 +1393,26 @@ class CollisionFn:
 
     def _object_test(self, st: _Rows, s: int, ends, X_WO: np.ndarray, touch: np.ndarray, mg_obj: float) -> None:
         """Arm ``s``'s capsules against the object on the live rows: a link (the touching ball exempt)
-        within ``mg_obj`` fails as ``env_collision``, one (not a ball) within ``link_clearance`` (its
-        parent link: ``tool_clearance``) as ``object_clearance``. One mesh test at the clearances;
-        only its hits are tested again at ``mg_obj`` to tell the two apart."""
-        a, rows = self.arms[s], st.live()
-        if not len(rows):
-            return
-        A, B = _rows(ends[0], rows), _rows(ends[1], rows)
-        X_OW = se3.invert(X_WO[rows])
-        test = np.ones((len(a.cap_names), len(rows)), bool)
+        within ``mg_obj`` fails as ``env_collision``, then one (not a ball) within ``link_clearance``
+        (its parent link: ``tool_clearance``) of the object, on the rows left, as ``object_clearance``."""
+        a = self.arms[s]
         ball = a.cap_link == a.eef_index
-        test[ball] = ~touch[rows, s]
         tool = a.cap_link == a.eef_index - 1
         wide = np.where(ball, mg_obj, np.maximum(mg_obj, np.where(tool, self.tool_clearance, self.link_clearance)))
-        k, c = _mesh_hits(self.object, X_OW, A, B, a.cap_r, wide, test)
         names = np.asarray(a.cap_names)
-        if not np.any(wide > mg_obj) or not len(k):
-            st.fail(rows[k], "env_collision", names[c], "object", s)
-            return
-        h = np.unique(k)  # rows within the clearance: which of them touch?
-        kk, cc = _mesh_hits(self.object, X_OW[h], A[:, :, h], B[:, :, h], a.cap_r, mg_obj, test[:, h])
-        st.fail(rows[h[kk]], "env_collision", names[cc], "object", s)
-        st.fail(rows[k], "object_clearance", names[c], "object", s)
+        for kind, margin in (("env_collision", mg_obj), ("object_clearance", wide)):
+            rows = st.live()
+            if not len(rows):
+                return
+            test = np.ones((len(a.cap_names), len(rows)), bool)
+            test[ball] = ~touch[rows, s]
+            if kind == "object_clearance":
+                if not np.any(wide > mg_obj):
+                    return
+                test &= (wide > mg_obj)[:, None]
+            k, c = _mesh_hits(self.object, se3.invert(X_WO[rows]), _rows(ends[0], rows), _rows(ends[1], rows),
+                              a.cap_r, margin, test)
+            st.fail(rows[k], kind, names[c], "object", s)
 
     def object_blocks_arm(self, X_WO: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Object poses at which some posture-independent part of an arm (``_core_balls``) overlaps the
@@ -1469,12 +1531,13 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
     box (in the mesh frame, grown by the capsule radius), then separation from its convex hull: the
     capsule's segment, clipped by every hull face plane pushed out by the capsule radius
-    (Cyrus–Beck), is empty. What remains goes to ``fcl.collide`` (capsule inflated by the margin),
-    capsule by capsule in index order; a row already hit by a lower capsule is not tested again. A
-    capsule with no triangle contact can still lie wholly inside the mesh, so one of its points is
-    tested for inclusion (hull planes for a convex mesh, trimesh's ray test otherwise). Returns hits
-    as ``(row, capsule)`` index arrays, ordered by capsule then row, which include each hit row's
-    lowest colliding capsule (not necessarily every capsule that collides with it).
+    (Cyrus–Beck), is empty. A capsule that reaches one of the spheres inside the solid
+    (``_Mesh.inner``) collides, with no exact test. The rest, below a row's lowest such capsule, goes
+    to ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row
+    already hit by a lower capsule is not tested again. A capsule with no triangle contact can still
+    lie wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
+    mesh, trimesh's ray test otherwise). Returns one hit per colliding row, its lowest colliding
+    capsule, as ``(row, capsule)`` index arrays ordered by capsule then row.
     """
     import fcl
 
@@ -1505,7 +1568,12 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     separated = (lo > hi) | np.any((ds == 0) & (sa > rc), axis=0)
     c, k, a, b, rc, sa = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
         sa[:, ~separated]
-    hit = np.zeros(len(c), bool)
+    # Exact early accept: a capsule that reaches a sphere inside the solid. Only capsules below a row's
+    # lowest accepted one need python-fcl (each row reports its lowest colliding capsule).
+    accept = _reaches_inner(msh.inner, a, b, rc)
+    lowest = np.full(X_OW.shape[0], len(radius))
+    np.minimum.at(lowest, k[accept], c[accept])
+    hit = accept & (c == lowest[k])
     tested = np.zeros(len(c), bool)
     req = fcl.CollisionRequest()
     u = b - a
@@ -1514,7 +1582,8 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     centre = ((a + b) / 2).T
     shapes: dict = {}  # one fcl object per capsule (its length and radius do not change with q)
     row_hit = np.zeros(X_OW.shape[0], bool).tolist()
-    for i, (ci, ki) in enumerate(zip(c.tolist(), k.tolist(), strict=True)):  # capsule-major (np.nonzero)
+    for i in np.flatnonzero(c < lowest[k]).tolist():  # capsule-major (np.nonzero)
+        ci, ki = int(c[i]), int(k[i])
         if row_hit[ki]:
             continue
         if ci not in shapes:
@@ -1534,5 +1603,27 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
         with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
             inside[inside] = test_mesh.contains(a[:, inside].T)
     hit |= inside
+    # One per row: its lowest colliding capsule (the hits are in capsule-major order).
+    _, first = np.unique(k[hit], return_index=True)
+    hit = np.flatnonzero(hit)[first]
     order = np.lexsort((k[hit], c[hit]))
     return k[hit][order], c[hit][order]
+
+
+def _reaches_inner(inner: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray) -> np.ndarray:
+    """``(K,)`` bool: segment ``a b (3, K)`` (mesh frame) within ``rc (K,)`` plus the radius of one of
+    the spheres ``inner (S, 4)``, so that the inflated capsule overlaps the solid."""
+    out = np.zeros(a.shape[1], bool)
+    if not len(inner) or not a.shape[1]:
+        return out
+    u = b - a
+    uu = np.maximum(_dot(u, u), 1e-300)
+    step = max(1, 2_000_000 // len(inner))
+    for s in range(0, a.shape[1], step):
+        sl = slice(s, s + step)
+        w = inner[:, :3, None] - a[None, :, sl]  # (S, 3, k)
+        t = np.clip(np.einsum("sik,ik->sk", w, u[:, sl]) / uu[sl], 0.0, 1.0)
+        d = w - t[:, None, :] * u[None, :, sl]
+        reach = inner[:, 3, None] + rc[None, sl]
+        out[sl] = np.any(np.einsum("sik,sik->sk", d, d) < reach * reach, axis=0)
+    return out

@@ -507,9 +507,26 @@ def test_object_on_the_first_links_axis_blocks_the_arm_at_every_posture(scene_ro
     assert blame[:, 0].all()  # the left arm is always involved
 
 
+def test_inner_spheres_lie_inside_the_solid():
+    """Each early-accept sphere's centre is inside the mesh and its radius at most the centre's
+    distance to the surface; an open mesh has none (no inside)."""
+    import trimesh
+
+    from tests.conftest import l_prism
+
+    mesh = l_prism()
+    inner = rb._make_mesh(mesh, "L prism").inner
+    assert 10 <= len(inner) <= 48
+    _, d, _ = trimesh.proximity.closest_point(mesh, inner[:, :3])
+    assert mesh.contains(inner[:, :3]).all() and np.all(inner[:, 3] <= d) and np.all(inner[:, 3] > 0)
+    opened = trimesh.Trimesh(mesh.vertices, mesh.faces[1:], process=False)
+    assert len(rb._make_mesh(opened, "open L prism").inner) == 0
+
+
 def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl():
-    """The hull filters (bounding sphere, Cyrus-Beck clipping) and the early exit per row only skip
-    work: the first colliding capsule of every row is the one a plain fcl test of all pairs finds."""
+    """The hull filters (bounding sphere, Cyrus-Beck clipping), the inner spheres' early accept and the
+    early exit per row only skip work: each colliding row is reported once, with the first colliding
+    capsule that a plain fcl test of all pairs finds."""
     import fcl
 
     from tests.conftest import l_prism
@@ -526,9 +543,9 @@ def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl()
     X_OW = np.broadcast_to(np.eye(4), (m, 4, 4))
     test = rng.random((C, m)) < 0.9
     k, c = rb._mesh_hits(msh, X_OW, A, B, radius, 0.0, test)
-    got = {}
-    for kk, cc in zip(k.tolist(), c.tolist(), strict=True):
-        got[kk] = min(got.get(kk, C), cc)
+    assert len(np.unique(k)) == len(k)
+    got = dict(zip(k.tolist(), c.tolist(), strict=True))
+    assert rb._reaches_inner(msh.inner, A[:, c, k], B[:, c, k], radius[c]).any()
     want = {}
     for ci in range(C):
         for ki in np.flatnonzero(test[ci]):
