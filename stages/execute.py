@@ -1314,7 +1314,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     X_PO = se3.invert(X_OP)
 
     # Targets from the plan.
-    R_plan = np.stack([robot.fk(a.name, plan.q[:, i])[:, a.eef_index, :3, :3] for i, a in enumerate(arms)], axis=1)
+    R_plan = np.stack([robot.eef_rotation(a.name, plan.q[:, i]) for i, a in enumerate(arms)], axis=1)
     normals = _contact_normals(mesh, plan.X_WO, plan.p_ball, plan.contact)
     tg = _make_targets(plan, R_plan, normals, params, f_bound)
     hull_O = np.asarray(mesh.convex_hull.vertices)

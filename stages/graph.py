@@ -207,8 +207,7 @@ def eef_normal_angle_change(robot, q: np.ndarray, X_traj: np.ndarray, n_O: np.nd
     if E == 0:
         return out
     for k, arm in enumerate(("left", "right")):
-        a = robot.arm(arm)
-        e = robot.fk(arm, q[:, :, k].reshape(T * E, -1))[:, a.eef_index, :3, 2].reshape(T, E, 3)
+        e = robot.eef_rotation(arm, q[:, :, k].reshape(T * E, -1))[:, :, 2].reshape(T, E, 3)
         n_W = -np.einsum("etij,ej->tei", X_traj[..., :3, :3], n_O[:, k])
         ang = np.arccos(np.clip(np.einsum("tei,tei->te", e, n_W), -1.0, 1.0))
         out = np.maximum(out, np.abs(ang - ang[:1]).max(axis=0))

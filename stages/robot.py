@@ -350,6 +350,13 @@ class Robot:
         X[:, :, 3, 3] = 1.0
         return X
 
+    def eef_rotation(self, arm: str, q: np.ndarray) -> np.ndarray:
+        """Ball frames' rotations ``R_WE (N, 3, 3)`` at ``q (N, n)``: ``fk``'s, without the other links."""
+        a = self.arm(arm)
+        q = _check_q(a, q)
+        cols = _fk_frames(a, np.ascontiguousarray(q.T), upto=a.eef_index + 1)[-1][0]
+        return np.stack([c.T for c in cols], axis=-1)
+
     def eef_position(self, arm: str, q: np.ndarray) -> np.ndarray:
         """Ball centres ``p_W (N, 3)`` (m) at ``q (N, n)``."""
         a = self.arm(arm)

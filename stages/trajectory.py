@@ -656,8 +656,7 @@ def rolling_shift(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, n_O: np.ndar
     controller of ``stages.execute`` shifts its target the same way), accumulated over the rows of
     ``q (T, n)`` and ``X_WO (T, 4, 4)`` from the first; ``n_O`` is the contact's outward normal (O).
     """
-    a = robot.arm(arm)
-    R_b = robot.fk(arm, q)[:, a.eef_index, :3, :3]
+    R_b = robot.eef_rotation(arm, q)
     R_o = X_WO[:, :3, :3]
     d_o = Rotation.from_matrix(R_o[1:] @ np.swapaxes(R_o[:-1], 1, 2)).as_rotvec()
     d_b = Rotation.from_matrix(R_b[1:] @ np.swapaxes(R_b[:-1], 1, 2)).as_rotvec()

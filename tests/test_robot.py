@@ -141,7 +141,7 @@ def test_fk_equals_pybullet_at_random_q_for_all_links_of_both_arms_under_a_rando
                     np.testing.assert_allclose(pb.link_pose(link), X[i, k], atol=1e-6, err_msg=link)
 
 
-def test_fk_batch_equals_loop_and_eef_position_is_the_ball_link(robot):
+def test_fk_batch_equals_loop_and_eef_position_and_rotation_are_the_ball_links(robot):
     rng = np.random.default_rng(0)
     arm = robot.arms["right"]
     for n in (0, 1, 17):
@@ -151,6 +151,7 @@ def test_fk_batch_equals_loop_and_eef_position_is_the_ball_link(robot):
         for i in range(n):
             np.testing.assert_array_equal(X[i], robot.fk("right", q[i:i + 1])[0])
         np.testing.assert_allclose(robot.eef_position("right", q), X[:, arm.eef_index, :3, 3], atol=1e-15)
+        np.testing.assert_array_equal(robot.eef_rotation("right", q), X[:, arm.eef_index, :3, :3])
         np.testing.assert_allclose(X[:, :, 3], np.broadcast_to([0, 0, 0, 1.0], X[:, :, 3].shape))
 
 
