@@ -9,10 +9,11 @@ cos(row), for floats; the exact sums for integers; the value counts for strings)
 ``git diff tests/golden`` shows which stage, artifact and column moved, and by how much.
 
 ``make golden`` (``python -m tests.golden``) regenerates the digests; ``make test`` compares them
-(``tests/test_golden.py``) with the tolerances of ``TOLERANCES``: 1e-6 relative for the planning
-stages (byte-identical on one machine; the margin absorbs another BLAS's last bits), the physics
-metrics of the execution with physics tolerances (a millimetre, a tenth of a degree), as contact
-simulation amplifies the last bits of its inputs.
+(``tests/test_golden.py``) with the tolerances of :func:`tolerance`: 1e-6 relative for the planning
+stages, the physics metrics of the execution with physics tolerances (a millimetre, a tenth of a
+degree). Tolerances cannot absorb a decision that a last bit flips (an IK that converges at its
+tolerance or not), so the chains run on one pinned floating point (``PINNED_ENV``: no SIMD dispatch
+in numpy, generic OpenBLAS kernels, piqp's AVX2 build), the same on every x86-64 machine.
 """
 
 from __future__ import annotations
@@ -74,15 +75,53 @@ class Chain:
             stage, self.build / "full")
 
 
+#: The reference chains run on the same floating point on every x86-64 machine: numpy's baseline
+#: loops (no AVX2/AVX-512 dispatch), OpenBLAS's generic SSE3 kernels and piqp's AVX2 build (not its
+#: AVX-512 one). Each SIMD path rounds differently in the last bits, which flips borderline IK and
+#: collision decisions downstream and moves the physics by millimetres, so digests made on one kind of
+#: machine would not match another's.
+PINNED_ENV = {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4", "OPENBLAS_CORETYPE": "Prescott"}
+
+
 def run_chain(scene: Path, root: Path) -> Chain:
     """The six stages on ``scene`` with the CLI's default parameters (no frames rendered), into
-    ``root/<scene>/``; scenes with the same object (mesh, mass, scale) share one analysis under ``root``."""
-    from stages import analyze, execute, graph, plan, sample, trajectory
+    ``root/<scene>/``, in a process on the pinned floating point (``PINNED_ENV``); scenes with the same
+    object (mesh, mass, scale) share one analysis under ``root``."""
+    import os
+    import subprocess
+
+    env = {**os.environ, **PINNED_ENV, "PYTHONPATH": str(REPO)}
+    subprocess.run([sys.executable, "-m", "tests.golden", "--chain", str(scene), str(root)], cwd=REPO, env=env,
+                   check=True, stdout=subprocess.DEVNULL)
+    return _chain(scene, root)
+
+
+def _chain(scene: Path, root: Path) -> Chain:
     from stages.scene import load_scene
 
     spec = load_scene(scene).object
     analysis = root / f"analysis-{spec.mesh_path.stem}-{spec.mass:g}kg-x{spec.scale:g}"
-    ch = Chain(scene, analysis, root / scene.stem)
+    return Chain(scene, analysis, root / scene.stem)
+
+
+def _run_chain_here(scene: Path, root: Path) -> None:
+    """:func:`run_chain`'s process: piqp's AVX2 build is chosen before anything imports piqp (its
+    ``__init__`` picks the build from ``piqp.instruction_set``, loaded here first and told no AVX-512)."""
+    import importlib.util
+
+    where = importlib.util.find_spec("piqp").submodule_search_locations[0]
+    spec = importlib.util.spec_from_file_location(
+        "piqp.instruction_set", next(Path(where).glob("instruction_set*.so")))
+    isa = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(isa)
+    isa.avx512f = False
+    sys.modules["piqp.instruction_set"] = isa
+    from stages import analyze, execute, graph, plan, sample, trajectory
+    from stages.scene import load_scene
+
+    spec = load_scene(scene).object
+    ch = _chain(scene, root)
+    analysis = ch.analysis
     if not (analysis / "analysis.json").is_file():
         analyze.run(spec.mesh_path, analysis, spec.mass, analyze.Params(), scale=spec.scale)
     sample.run(scene, analysis, ch.folder("sample"), sample.Params())
@@ -93,7 +132,6 @@ def run_chain(scene: Path, root: Path) -> Chain:
         stats = trajectory.run(scene, analysis, full / "plan.json", full / "trajectories.parquet", trajectory.Params())
         if stats["status"] == "ok":
             execute.run(scene, analysis, full / "trajectories.parquet", full, execute.Params())
-    return ch
 
 
 def digest_json(path: Path) -> dict:
@@ -208,4 +246,7 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--chain"]:
+        _run_chain_here(Path(sys.argv[2]), Path(sys.argv[3]))
+        sys.exit(0)
     sys.exit(main(sys.argv[1:]))

@@ -73,10 +73,10 @@ def test_reason_codes_fold_numbers():
 @pytest.mark.slow
 def test_smoke_sweep_on_a_local_cluster(tmp_path):
     out = tmp_path / "bench"
-    r = runner.invoke(app, ["benchmark", "make", str(out), "--objects", "box,drum", "--goals", "2"])
+    r = runner.invoke(app, ["benchmark", "make", str(out), "--objects", "box", "--goals", "2"])
     assert r.exit_code == 0, r.output
     cases = artifacts.read_json(out / "suite.json", "benchmark_suite")["cases"]
-    assert [c["kind"] for c in cases] == ["translate", "rotate"] * 2
+    assert [c["kind"] for c in cases] == ["translate", "rotate"]
     for c in cases:  # every case is an ordinary scene file
         assert json.loads((out / c["scene"]).read_text())["name"] == c["case"]
     broken = cases[-1]["case"]
@@ -105,7 +105,7 @@ def test_smoke_sweep_on_a_local_cluster(tmp_path):
     stamps = {c["case"]: (out / "runs" / c["case"] / "case.json").stat().st_mtime_ns for c in cases[:-1]}
 
     r = runner.invoke(app, ["benchmark", "run", str(out), "--workers", "2", "--seeds", "1", "--timeout", "400"])
-    assert r.exit_code == 0 and "1 ran, 3 current (skipped)" in r.output, r.output
+    assert r.exit_code == 0 and "1 ran, 1 current (skipped)" in r.output, r.output
     assert stamps == {c: (out / "runs" / c / "case.json").stat().st_mtime_ns for c in stamps}
 
     r = runner.invoke(app, ["benchmark", "report", str(out)])
