@@ -18,8 +18,9 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   ``stages.mpc.pivot_reference``: batched IK along the path seeded from the first node (no branch
   flips), the arms free of collision at every sample, each ball's tool axis turning against its
   contact normal by at most ``max_eef_normal_change`` (§5.1's check, ``eef_normal_angle``), and the
-  object in equilibrium on v with the two balls at the largest tilt (the stability LP, with the
-  friction and ball force the plan's MPC may use, ``friction_safety`` and ``force_safety``).
+  object in equilibrium on v with the two balls at the start of the tilt and at the largest tilt (v
+  among both grasps' ``pivot_vertices``, ``stages.sample``, then the stability LP at the largest tilt,
+  with the friction and ball force the plan's MPC may use, ``friction_safety`` and ``force_safety``).
   Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between any two grasps of the pose whose balls can change their contacts one at a time, each

@@ -38,9 +38,11 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    the table's friction and ``Params.hold_eef_friction`` of the ball's (which a regrasp in USP
    needs, §5.2.2; a verdict only, its margin is never used).
    ``pivot_vertices`` are the support corners on the table on which the object stays in equilibrium
-   at the pivot's full tilt (``mpc.pivot_reference``) with ``pivot_friction_safety`` and
-   ``pivot_force_safety``: the graph stage's test of a pivot edge, so that a pivot no shared grasp
-   lists is refused before its arm motion is checked.
+   with both balls, with ``pivot_friction_safety`` and ``pivot_force_safety``, both at the start of
+   the tilt (the other corners just lifted, the CoM at its full offset from the corner: the hardest
+   instant, which the plan's pivot MPC meets with the same friction and force) and at the pivot's full
+   tilt (``mpc.pivot_reference``): the graph stage's test of a pivot edge, so that a pivot no shared
+   grasp lists is refused before its arm motion is checked, not after its MPC.
    Every pose of a placement is its resting pose turned about the vertical and shifted, and the
    stability LP is invariant under that motion, so the pivot tests are solved once per (placement,
    pair, corner) and shared by all poses of the placement.
@@ -363,6 +365,10 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     first = np.argmax(holds, axis=1)
     piv_c = np.zeros((C, kmax), bool)
     r2, c2 = rows[res.stable], cols[res.stable]
+    # The start of the tilt first: the object already on that corner alone with its CoM at its full
+    # offset, the hardest instant of the pivot (the tilt then brings the CoM towards the corner).
+    start = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, 0.0, prm_pivot, evaluate)
+    r2, c2 = r2[start], c2[start]
     piv_c[r2, c2] = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, scene.planner.tilt,
                                   prm_pivot, evaluate)
     pivots = on & piv_c[cls]
@@ -404,7 +410,8 @@ def _usp_stability(out, us, model, tables, pose_id, g, X, eef_p, eef_n, half, lp
 def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate) -> np.ndarray:
     """Whether each object stays in equilibrium tilted by ``tilt`` (rad) onto its corner ``p0 (n, 3)``
     with both balls (``eef_p``, inward ``eef_n (n, 2, 3)``; CoM ``com (n, 3)``; W, m), ``(n,)`` bool:
-    the graph stage's test of a pivot edge at its full tilt (``graph.build_graph``), about the axis of
+    the graph stage's test of a pivot edge at its full tilt and, with ``tilt = 0``, at the start of its
+    tilt (``graph.build_graph``), about the axis of
     ``mpc.pivot_reference`` (horizontal through the corner, across the corner's direction to the CoM,
     raising the CoM side; §5.2.1, Fig. 12). Yaw and the shift do not change the verdict, so one test
     per (placement, pair, corner) is every pose's."""

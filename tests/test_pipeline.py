@@ -43,8 +43,9 @@ def test_grasps_are_reached_collision_free_and_stable(ctx):
     yr = se3.transform_points(X, p[gr["contact_right"]])[:, 1]
     assert (yl >= yr - 1e-12).all()
     # SP grasps' pivot vertices are those of their pose's support corners on which the LP holds the
-    # object tilted by the planner's tilt (mpc.pivot_reference's axis) with the graph's friction and
-    # force safety: recorded ones hold, the other corners do not.
+    # object with the graph's friction and force safety both at the start of the tilt (on the corner
+    # alone, untilted) and tilted by the planner's tilt (mpc.pivot_reference's axis): recorded ones
+    # hold, the other corners do not.
     sp = np.flatnonzero(ps["support"][gr["pose_id"]] == "SP")[:40]
     corners = poses.pivot_corners(model, sample.Params().corner_cluster)
     rows = [(i, v, v in set(gr["pivot_vertices"][i].tolist())) for i in sp
@@ -57,19 +58,21 @@ def test_grasps_are_reached_collision_free_and_stable(ctx):
     d[:, 2] = 0.0
     T = se3.transform_about_line(p0, np.cross(d / np.linalg.norm(d, axis=1, keepdims=True), [0, 0, 1.0]),
                                  np.full(len(i), scene.planner.tilt))
-    Xt = T @ Xi
     cl, cr = gr["contact_left"][i], gr["contact_right"][i]
-    pts = np.stack([se3.transform_points(Xt, p[cl]), se3.transform_points(Xt, p[cr])], 1)
-    nrm = -np.stack([se3.rotate_vectors(Xt, n[cl]), se3.rotate_vectors(Xt, n[cr])], 1)
     gp = graph.Params()
-    res = stability.evaluate(scene.object.mass, se3.transform_points(Xt, model.com), p0[:, None], None, pts, nrm,
-                             None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                             stability.Params(mu_eef=gp.friction_safety * scene.object.friction,
-                                              mu_table=gp.friction_safety * scene.table.friction,
-                                              f_max=gp.force_safety * scene.robot.max_eef_force),
-                             compute_margin=False)
+    holds = np.ones(len(i), bool)
+    for Xt in (Xi, T @ Xi):  # the start of the tilt, the full tilt
+        pts = np.stack([se3.transform_points(Xt, p[cl]), se3.transform_points(Xt, p[cr])], 1)
+        nrm = -np.stack([se3.rotate_vectors(Xt, n[cl]), se3.rotate_vectors(Xt, n[cr])], 1)
+        res = stability.evaluate(scene.object.mass, se3.transform_points(Xt, model.com), p0[:, None], None, pts,
+                                 nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
+                                 stability.Params(mu_eef=gp.friction_safety * scene.object.friction,
+                                                  mu_table=gp.friction_safety * scene.table.friction,
+                                                  f_max=gp.force_safety * scene.robot.max_eef_force),
+                                 compute_margin=False)
+        holds &= res.stable
     on = np.all(np.abs(p0[:, :2]) <= np.asarray(scene.table.size) / 2, axis=1)
-    np.testing.assert_array_equal(recorded, res.stable & on)
+    np.testing.assert_array_equal(recorded, holds & on)
 
 
 def test_sample_predicts_the_graphs_pivot_test_with_the_same_safety_factors():
