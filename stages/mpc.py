@@ -172,7 +172,7 @@ def _as_pose(X, name: str) -> np.ndarray:
     return X
 
 
-def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, durations, p_com_O=None):
+def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, durations, p_com_O=None, tilt_dir=None):
     """Tilt–rotate–lower reference for one pivoting step (§5.2.1, Fig. 12).
 
     The goal must differ from the start by a rotation about the vertical through the table vertex
@@ -180,8 +180,8 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
     perpendicular to the horizontal direction ``d`` from ``p0_W`` to the CoM, in the sense that
     raises the CoM side (axis ``d x z``, positive angle): every other support point ``q`` with
     ``(q - p0) . d > 0`` rises by ``sin(tilt) (q - p0) . d``, which for a vertex of a convex base
-    whose CoM projects inside it is every other vertex of a box-like base; bases with a wide
-    angle at ``p0`` may keep a vertex behind ``p0`` down (the planner's support check sees it).
+    whose CoM projects inside it is every other vertex of a box-like base; where a wide angle or a
+    curved rim at ``p0`` would keep a vertex behind ``p0`` down, ``tilt_dir`` replaces ``d``.
     The object then yaws about the vertical through ``p0_W`` by the start-to-goal angle (in
     (-pi, pi]; physics wants <= 30 deg per step) and is lowered by the reverse tilt about the
     yawed axis. Each phase follows a minimum-jerk profile, so velocity and acceleration are zero
@@ -202,6 +202,9 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
         Durations of the tilt, rotate and lower phases (s); rotate may be 0.
     p_com_O : (3,) float, optional
         CoM in the object frame (m, O); the origin of O when omitted.
+    tilt_dir : (3,) float, optional
+        The horizontal unit direction ``d`` that rises (W), when not the CoM's: a corner whose
+        neighbours would sink into the table at the CoM's (``stages.poses.tilt_direction``).
 
     Returns
     -------
@@ -226,7 +229,7 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
             np.abs(X_goal_expected[:3, 3] - X_g[:3, 3]).max() > SUPPORT_TOL:
         raise InputError("pivot_reference: the goal is not a rotation of the start about the vertical "
                          f"through p0_W={p0_W.tolist()}")
-    d = se3.transform_points(X_s, p_com_O) - p0_W
+    d = se3.transform_points(X_s, p_com_O) - p0_W if tilt_dir is None else np.array(tilt_dir, dtype=float)
     d[2] = 0.0
     if np.linalg.norm(d) < 1e-9:
         raise InputError("pivot_reference: the CoM is above p0_W, the tilt direction is undefined")

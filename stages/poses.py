@@ -63,6 +63,9 @@ class Params:
     usp: bool = True
     sp_margin: float = 0.005
     corner_cluster: float = 0.03
+    #: The pivots' tilt (rad, the scene's ``planner.tilt_deg``): a corner the object cannot be tilted onto
+    #: alone is no pivot corner (:func:`tilt_direction`).
+    tilt: float = np.radians(8.0)
     min_tumble_edge: float = 0.05
     merge_xy: float = 1e-4
     merge_yaw: float = 1e-4
@@ -116,6 +119,8 @@ class ObjectModel:
     supports: tuple = field(init=False, repr=False, compare=False)
     #: the mesh's fcl bounding-volume hierarchy, built on first use (:func:`_object_fcl`)
     bvh: list = field(default_factory=list, init=False, repr=False, compare=False)
+    #: pivot tilt directions by (vertex, table normal in O, tilt, cluster), on first use (:func:`tilt_direction`)
+    tilt_dirs: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "supports", support_sets(self.mesh_vertices, self.mesh_faces, self.X_TO))
@@ -185,8 +190,9 @@ class PoseSet:
     goal_id: int = -1  # the goal's pose id, -1 when not asked for or not reached
 
 
-def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
-    """Per placement, the hull vertex ids of its support-polygon corners (one per cluster)."""
+def pivot_corners(model: ObjectModel, cluster: float, tilt: float | None = None) -> list[np.ndarray]:
+    """Per placement, the hull vertex ids of its support-polygon corners (one per cluster); with
+    ``tilt`` (rad), only the corners the object can be tilted onto alone (:func:`tilt_direction`)."""
     out = []
     for g, sup in enumerate(model.support):
         sup = np.asarray(sup, dtype=np.int64)
@@ -198,7 +204,69 @@ def pivot_corners(model: ObjectModel, cluster: float) -> list[np.ndarray]:
         for i in order:  # a handful of vertices per face
             if all(np.linalg.norm(p[i] - p[j]) >= cluster for j in chosen):
                 chosen.append(i)
-        out.append(np.sort(sup[chosen]))
+        ids = np.sort(sup[chosen])
+        if tilt is not None:
+            ids = np.array([v for v in ids if _tilt_dir_O(model, v, model.X_TO[g], tilt, cluster) is not _NO_TILT],
+                           dtype=np.int64)
+        out.append(ids)
+    return out
+
+
+#: Height (m) by which every hull vertex farther than the corner cluster from a pivot corner clears
+#: the table at the pivot's full tilt, and the most a vertex of the corner's own cluster may sink below it.
+TILT_CLEARANCE = 1e-3
+_TILT_ANGLES = np.radians(np.arange(0.0, 360.0, 0.5))
+_NO_TILT = np.zeros(0)  # sentinel: no direction lifts the object onto the corner alone
+
+
+def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float, cluster: float) -> np.ndarray | None:
+    """The horizontal unit direction (W) whose side rises when the object at ``X_WO`` (resting on the
+    table) tilts by ``tilt`` (rad) onto its hull vertex ``v``: ``mpc.pivot_reference``'s ``tilt_dir``
+    (§5.2.1, Fig. 12; its tilt axis is ``d x z``). None when the default, the direction from the
+    vertex to the CoM, works: at the full tilt every hull vertex farther than ``cluster`` (m) from ``v``
+    clears the table by ``TILT_CLEARANCE`` and none of its cluster sinks below by more, so the object
+    stands on ``v`` alone and turns about it. Otherwise the direction nearest to the CoM's (at most
+    90 deg off, 0.5 deg steps) that does: a corner with a wide angle or a curved rim next to it would
+    otherwise roll onto a neighbour, which physics then pivots about instead. Raises ``InputError``
+    when no direction does (``pivot_corners`` with ``tilt`` leaves such corners out). Yaw and shift
+    do not change it, so it is solved once per (vertex, table normal in O) and turned with the pose."""
+    d_O = _tilt_dir_O(model, v, X_WO, tilt, cluster)
+    if d_O is _NO_TILT:
+        raise InputError(f"no tilt by {np.degrees(tilt):.1f} deg stands the object on vertex {v} alone")
+    if d_O is None:
+        return None
+    d = X_WO[:3, :3] @ d_O
+    d[2] = 0.0
+    return d / np.linalg.norm(d)
+
+
+def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float, cluster: float):
+    """:func:`tilt_direction` in frame O: None (the CoM's direction), ``_NO_TILT`` or a unit (3,)."""
+    up = np.round(X_WO[2, :3], 9)
+    key = (int(v), float(tilt), float(cluster), *up.tolist())
+    if key in model.tilt_dirs:
+        return model.tilt_dirs[key]
+    up = up / np.linalg.norm(up)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    E = np.stack([e1, np.cross(up, e1)])                                  # (2, 3) the table's plane in O
+    q = model.vertices - model.vertices[v]
+    z, s = q @ up, q @ E.T                                                # height, horizontal offset
+    low = np.where(np.linalg.norm(s, axis=1) > cluster, TILT_CLEARANCE, -TILT_CLEARANCE)
+    dc = (model.com - model.vertices[v]) @ E.T
+    dc = dc / np.linalg.norm(dc) if np.linalg.norm(dc) > 1e-9 else np.array([1.0, 0.0])
+
+    def clears(D: np.ndarray) -> np.ndarray:  # (A, 2) directions -> (A,) bool
+        return np.all(z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T) >= low[:, None], axis=0)
+
+    if clears(dc[None])[0]:
+        out = None
+    else:
+        D = np.stack([np.cos(_TILT_ANGLES), np.sin(_TILT_ANGLES)], axis=1)
+        cosa = D @ dc
+        ok = clears(D) & (cosa > 0.0)
+        out = D[np.argmax(np.where(ok, cosa, -2.0))] @ E if ok.any() else _NO_TILT
+    model.tilt_dirs[key] = out
     return out
 
 
@@ -209,7 +277,7 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m;
     ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
     """
-    corners = pivot_corners(model, params.corner_cluster)
+    corners = pivot_corners(model, params.corner_cluster, params.tilt)
     half = np.asarray(table_size, dtype=float) / 2
     collide = _make_object_collision_fn(model, obstacles)
     rows: list[dict] = []

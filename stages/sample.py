@@ -320,7 +320,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     prm_pivot = stability.Params(mu_eef=params.pivot_friction_safety * scene.object.friction,
                                  mu_table=params.pivot_friction_safety * scene.table.friction,
                                  f_max=params.pivot_force_safety * scene.robot.max_eef_force)
-    corners = poses.pivot_corners(model, params.corner_cluster)
+    corners = poses.pivot_corners(model, params.corner_cluster, scene.planner.tilt)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,
            "margin": np.zeros(N)}
@@ -369,8 +369,12 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     # offset, the hardest instant of the pivot (the tilt then brings the CoM towards the corner).
     start = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, 0.0, prm_pivot, evaluate)
     r2, c2 = r2[start], c2[start]
+    dirs = np.zeros((len(r2), 3))  # mpc.pivot_reference's tilt direction where it is not the CoM's
+    for i, (ri, vi) in enumerate(zip(r2.tolist(), cid[ukey[r2, 0], c2].tolist(), strict=True)):
+        d = poses.tilt_direction(model, X_c[ri], vi, scene.planner.tilt, params.corner_cluster)
+        dirs[i] = 0.0 if d is None else d
     piv_c[r2, c2] = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, scene.planner.tilt,
-                                  prm_pivot, evaluate)
+                                  prm_pivot, evaluate, dirs)
     pivots = on & piv_c[cls]
     out["pivot_vertices"] = [ids[i][pivots[i]] for i in range(N)]
     # Margins cost twelve LPs each: measure them on one pivot corner per SP grasp, the first that holds
@@ -407,17 +411,22 @@ def _usp_stability(out, us, model, tables, pose_id, g, X, eef_p, eef_n, half, lp
                    evaluate)
 
 
-def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate) -> np.ndarray:
+def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate,
+                  tilt_dir: np.ndarray | None = None) -> np.ndarray:
     """Whether each object stays in equilibrium tilted by ``tilt`` (rad) onto its corner ``p0 (n, 3)``
     with both balls (``eef_p``, inward ``eef_n (n, 2, 3)``; CoM ``com (n, 3)``; W, m), ``(n,)`` bool:
     the graph stage's test of a pivot edge at its full tilt and, with ``tilt = 0``, at the start of its
     tilt (``graph.build_graph``), about the axis of
     ``mpc.pivot_reference`` (horizontal through the corner, across the corner's direction to the CoM,
-    raising the CoM side; §5.2.1, Fig. 12). Yaw and the shift do not change the verdict, so one test
-    per (placement, pair, corner) is every pose's."""
+    raising the CoM side, or along ``tilt_dir (n, 3)``'s non-zero rows, ``poses.tilt_direction``;
+    §5.2.1, Fig. 12). Yaw and the shift do not change the verdict, so one test per (placement, pair,
+    corner) is every pose's."""
     if not len(p0):
         return np.zeros(0, bool)
     d = com - p0
+    if tilt_dir is not None:
+        own = np.any(tilt_dir != 0.0, axis=1)
+        d[own] = tilt_dir[own]
     d[:, 2] = 0.0
     defined = np.linalg.norm(d, axis=1) > 1e-9  # a CoM above its corner has no tilt direction: no pivot
     d[~defined] = [1.0, 0.0, 0.0]
@@ -482,7 +491,7 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     pl = scene.planner
     upstream = tables["placements"].meta["params"]
     pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp, sp_margin=float(upstream["sp_margin"]),
-                      corner_cluster=params.corner_cluster, min_tumble_edge=params.min_tumble_edge,
+                      corner_cluster=params.corner_cluster, tilt=pl.tilt, min_tumble_edge=params.min_tumble_edge,
                       face_tilt=np.radians(float(upstream["hull_coplanar_deg"])))
     Xg, gg = placement_pose(scene.goal, model, f"{scene.path}: goal")
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links),

@@ -1112,6 +1112,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
                    clearance=clearance_of(plan.get("meta", {}).get("params", {})))
     p_O, n_O, r, mp, inertia = env.p_O, env.n_O, env.r, env.mp, env.inertia
     dt = mp.dt
+    cluster = float(plan.get("meta", {}).get("params", {}).get("corner_cluster", poses.Params().corner_cluster))
     tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
              "tumbles": [], "pivot_table_friction": []}
@@ -1139,8 +1140,9 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
         elif prim == "pivot":
             vtx = int(step["vertex"])
             p0 = se3.transform_points(X_from, model.vertices[vtx])
+            d = poses.tilt_direction(model, X_from, vtx, scene.planner.tilt, cluster)
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
-                                               p_com_O=model.com)
+                                               p_com_O=model.com, tilt_dir=d)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
             for fs in (*params.table_friction_tries, params.friction_safety):
                 res = mpc.run_pivot_mpc(scene.object.mass, inertia, model.com, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t,
