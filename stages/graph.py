@@ -278,12 +278,11 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     live = np.flatnonzero(status == "ok")
     if len(live):
         by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
-        cluster = float(grasps.meta["params"]["corner_cluster"])
         for li in np.unique(cand[live, 2]):
             Xa, Xb, vtx = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]], int(links["vertex"][li])
             p0 = se3.transform_points(Xa, model.vertices[vtx])
             try:
-                d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt, cluster)
+                d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt)
                 _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
                                                         params.check_durations, p_com_O=model.com, tilt_dir=d)
             except InputError:  # not an exact rotation about that vertex, or no tilt onto it: no pivot edge

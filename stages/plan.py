@@ -132,7 +132,6 @@ class _Context:
         self.robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
         self.collide = make_scene_collision_fn(scene, self.robot, self.tables["mesh"],
                                                clearance=clearance_of(self.grasps.meta["params"]))
-        self.corner_cluster = float(self.grasps.meta["params"]["corner_cluster"])  # poses.tilt_direction's
         con = self.tables["contacts"]
         self.p_O = np.stack([con["px"], con["py"], con["pz"]], axis=1)
         self.n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
@@ -370,7 +369,7 @@ def _pivot_motion(ctx: _Context, params: Params, u: int, v: int, edge_id: int):
     vtx = int(ctx.edges["vertex"][edge_id])
     Xa, Xb = ctx.X_WO[int(ctx.nodes["pose_id"][u])], ctx.X_WO[int(ctx.nodes["pose_id"][v])]
     p0 = se3.transform_points(Xa, ctx.model.vertices[vtx])
-    d = poses.tilt_direction(ctx.model, Xa, vtx, ctx.scene.planner.tilt, ctx.corner_cluster)
+    d = poses.tilt_direction(ctx.model, Xa, vtx, ctx.scene.planner.tilt)
     t, Xr, _ = mpc.pivot_reference(Xa, Xb, p0, ctx.scene.planner.tilt, params.mpc.dt, params.pivot_durations,
                                    p_com_O=ctx.model.com, tilt_dir=d)
     return vtx, Xa, Xb, p0, t, Xr
@@ -701,7 +700,7 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
     elapsed = time.perf_counter() - t0
     meta_params = {**{k: v for k, v in asdict(params).items() if k != "mpc_helper"},
                    "weights": asdict(scene.planner.weights), "arm_clearance": ctx.collide.link_clearance,
-                   "stick_clearance": ctx.collide.tool_clearance, "corner_cluster": ctx.corner_cluster}
+                   "stick_clearance": ctx.collide.tool_clearance}
     meta = artifacts.make_meta("plan", meta_params, ctx.inputs, producer)
     for s in plan["steps"]:
         for key in ("pose_from", "pose_to"):

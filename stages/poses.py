@@ -119,7 +119,7 @@ class ObjectModel:
     supports: tuple = field(init=False, repr=False, compare=False)
     #: the mesh's fcl bounding-volume hierarchy, built on first use (:func:`_object_fcl`)
     bvh: list = field(default_factory=list, init=False, repr=False, compare=False)
-    #: pivot tilt directions by (vertex, table normal in O, tilt, cluster), on first use (:func:`tilt_direction`)
+    #: pivot tilt directions by (vertex, tilt, table normal in O), on first use (:func:`tilt_direction`)
     tilt_dirs: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -206,33 +206,33 @@ def pivot_corners(model: ObjectModel, cluster: float, tilt: float | None = None)
                 chosen.append(i)
         ids = np.sort(sup[chosen])
         if tilt is not None:
-            ids = np.array([v for v in ids if _tilt_dir_O(model, v, model.X_TO[g], tilt, cluster) is not _NO_TILT],
+            ids = np.array([v for v in ids if _tilt_dir_O(model, v, model.X_TO[g], tilt) is not _NO_TILT],
                            dtype=np.int64)
         out.append(ids)
     return out
 
 
-#: Height (m) by which every hull vertex farther than the corner cluster from a pivot corner clears
-#: the table at the pivot's full tilt, and the most a vertex of the corner's own cluster may sink below it.
-TILT_CLEARANCE = 1e-3
+#: The most (m) a hull vertex may sink below the table's plane when the object tilts onto a pivot
+#: corner: a flat-bottomed mesh's rim vertices lie within a fraction of a millimetre of its plane,
+#: which the contact's compliance takes; a deeper one would carry the object instead of the corner.
+TILT_TOLERANCE = 1e-3
 _TILT_ANGLES = np.radians(np.arange(0.0, 360.0, 0.5))
-_NO_TILT = np.zeros(0)  # sentinel: no direction lifts the object onto the corner alone
+_NO_TILT = np.zeros(0)  # sentinel: no direction stands the object on the corner
 
 
-def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float, cluster: float) -> np.ndarray | None:
+def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float) -> np.ndarray | None:
     """The horizontal unit direction (W) whose side rises when the object at ``X_WO`` (resting on the
     table) tilts by ``tilt`` (rad) onto its hull vertex ``v``: ``mpc.pivot_reference``'s ``tilt_dir``
     (§5.2.1, Fig. 12; its tilt axis is ``d x z``). None when the default, the direction from the
-    vertex to the CoM, works: at the full tilt every hull vertex farther than ``cluster`` (m) from ``v``
-    clears the table by ``TILT_CLEARANCE`` and none of its cluster sinks below by more, so the object
-    stands on ``v`` alone and turns about it. Otherwise the direction nearest to the CoM's (at most
-    90 deg off, 0.5 deg steps) that does: a corner with a wide angle or a curved rim next to it would
-    otherwise roll onto a neighbour, which physics then pivots about instead. Raises ``InputError``
-    when no direction does (``pivot_corners`` with ``tilt`` leaves such corners out). Yaw and shift
-    do not change it, so it is solved once per (vertex, table normal in O) and turned with the pose."""
-    d_O = _tilt_dir_O(model, v, X_WO, tilt, cluster)
+    vertex to the CoM, works: at the full tilt no hull vertex sinks below the table by more than
+    ``TILT_TOLERANCE``, so the object stands on ``v`` and turns about it. Otherwise the direction
+    nearest to the CoM's (less than 90 deg off, 0.5 deg steps) that does: next to a wide corner or
+    a rounded rim the CoM's would roll the object onto a neighbour, which physics then turns about
+    instead. Raises ``InputError`` when no direction does (``pivot_corners`` with ``tilt`` leaves
+    such corners out). Yaw and shift do not change it: solved once per (vertex, table normal in O)."""
+    d_O = _tilt_dir_O(model, v, X_WO, tilt)
     if d_O is _NO_TILT:
-        raise InputError(f"no tilt by {np.degrees(tilt):.1f} deg stands the object on vertex {v} alone")
+        raise InputError(f"no tilt by {np.degrees(tilt):.1f} deg stands the object on its vertex {v}")
     if d_O is None:
         return None
     d = X_WO[:3, :3] @ d_O
@@ -240,10 +240,10 @@ def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float, cl
     return d / np.linalg.norm(d)
 
 
-def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float, cluster: float):
+def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float):
     """:func:`tilt_direction` in frame O: None (the CoM's direction), ``_NO_TILT`` or a unit (3,)."""
     up = np.round(X_WO[2, :3], 9)
-    key = (int(v), float(tilt), float(cluster), *up.tolist())
+    key = (int(v), float(tilt), *up.tolist())
     if key in model.tilt_dirs:
         return model.tilt_dirs[key]
     up = up / np.linalg.norm(up)
@@ -252,12 +252,11 @@ def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float, clust
     E = np.stack([e1, np.cross(up, e1)])                                  # (2, 3) the table's plane in O
     q = model.vertices - model.vertices[v]
     z, s = q @ up, q @ E.T                                                # height, horizontal offset
-    low = np.where(np.linalg.norm(s, axis=1) > cluster, TILT_CLEARANCE, -TILT_CLEARANCE)
     dc = (model.com - model.vertices[v]) @ E.T
     dc = dc / np.linalg.norm(dc) if np.linalg.norm(dc) > 1e-9 else np.array([1.0, 0.0])
 
     def clears(D: np.ndarray) -> np.ndarray:  # (A, 2) directions -> (A,) bool
-        return np.all(z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T) >= low[:, None], axis=0)
+        return np.all(z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T) >= -TILT_TOLERANCE, axis=0)
 
     if clears(dc[None])[0]:
         out = None

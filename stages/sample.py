@@ -371,7 +371,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     r2, c2 = r2[start], c2[start]
     dirs = np.zeros((len(r2), 3))  # mpc.pivot_reference's tilt direction where it is not the CoM's
     for i, (ri, vi) in enumerate(zip(r2.tolist(), cid[ukey[r2, 0], c2].tolist(), strict=True)):
-        d = poses.tilt_direction(model, X_c[ri], vi, scene.planner.tilt, params.corner_cluster)
+        d = poses.tilt_direction(model, X_c[ri], vi, scene.planner.tilt)
         dirs[i] = 0.0 if d is None else d
     piv_c[r2, c2] = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, scene.planner.tilt,
                                   prm_pivot, evaluate, dirs)

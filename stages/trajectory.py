@@ -1112,7 +1112,6 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
                    clearance=clearance_of(plan.get("meta", {}).get("params", {})))
     p_O, n_O, r, mp, inertia = env.p_O, env.n_O, env.r, env.mp, env.inertia
     dt = mp.dt
-    cluster = float(plan.get("meta", {}).get("params", {}).get("corner_cluster", poses.Params().corner_cluster))
     tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
              "tumbles": [], "pivot_table_friction": []}
@@ -1140,7 +1139,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
         elif prim == "pivot":
             vtx = int(step["vertex"])
             p0 = se3.transform_points(X_from, model.vertices[vtx])
-            d = poses.tilt_direction(model, X_from, vtx, scene.planner.tilt, cluster)
+            d = poses.tilt_direction(model, X_from, vtx, scene.planner.tilt)
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com, tilt_dir=d)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])

@@ -318,7 +318,7 @@ def test_the_tilt_direction_is_the_coms_where_every_other_vertex_rises():
     model = box_model()
     X, g = upright(model)
     for v in poses.pivot_corners(model, 0.03, np.radians(8))[g]:
-        assert poses.tilt_direction(model, X, int(v), np.radians(8), 0.03) is None
+        assert poses.tilt_direction(model, X, int(v), np.radians(8)) is None
 
 
 def test_a_wide_corner_tilts_off_the_coms_direction_so_that_no_neighbour_sinks():
@@ -329,30 +329,33 @@ def test_a_wide_corner_tilts_off_the_coms_direction_so_that_no_neighbour_sinks()
     X, v, q = model.X_TO[g], _vertex_at(model, (0, 0, 0)), _vertex_at(model, (-0.3, 0.03, 0))
     assert np.allclose(model.vertices[[v, q]], [(0, 0, 0), (-0.3, 0.03, 0)])
     tilt = np.radians(8)
-    d = poses.tilt_direction(model, X, v, tilt, 0.03)
+    d = poses.tilt_direction(model, X, v, tilt)
     assert d is not None and abs(d[2]) < 1e-12 and np.isclose(np.linalg.norm(d), 1.0)
     V = se3.transform_points(X, model.vertices)
     T = se3.transform_about_line(V[v], np.cross(d, [0, 0, 1.0]), tilt)
     z = se3.transform_points(T, V)[:, 2] - V[v, 2]
-    far = np.linalg.norm(V[:, :2] - V[v, :2], axis=1) > 0.03
-    assert z[far].min() >= poses.TILT_CLEARANCE - 1e-9
-    # The nearest such direction to the CoM's: the limit is q, (q - v) . d = clearance / sin(tilt); the
+    assert z.min() >= -poses.TILT_TOLERANCE - 1e-9
+    # The nearest such direction to the CoM's: the limit is q, (q - v) . d sin(tilt) = -tolerance; the
     # answer lies within the 0.5 deg search step of it.
     dc = (se3.transform_points(X, model.com) - V[v])[:2]
     dc /= np.linalg.norm(dc)
     qv = (V[q] - V[v])[:2]
     psi_q, psi_c = np.arctan2(qv[1], qv[0]), np.arctan2(dc[1], dc[0])
-    half = np.arccos(poses.TILT_CLEARANCE / np.sin(tilt) / np.linalg.norm(qv))
+    half = np.arccos(-poses.TILT_TOLERANCE / np.sin(tilt) / np.linalg.norm(qv))
     best = min(abs((psi_q + s * half - psi_c + np.pi) % (2 * np.pi) - np.pi) for s in (-1, 1))
     got = np.arccos(np.clip(d[:2] @ dc, -1, 1))
     assert best - 1e-9 <= got <= best + np.radians(0.5) + 1e-9
 
 
-def test_a_corner_on_a_nearly_straight_rim_is_no_pivot_corner():
-    # v = (0, 0) between (0.3, 0.005) and (-0.3, 0.005): any tilt sinks one of them by more than 1 mm.
-    model = _prism_model([(0, 0), (0.3, 0.005), (0.3, 0.4), (-0.3, 0.4), (-0.3, 0.005)])
-    g, v = int(np.argmax(model.normals @ np.array([0, 0, -1.0]))), _vertex_at(model, (0, 0, 0))
+def test_a_corner_with_a_rounded_rim_around_it_is_no_pivot_corner():
+    # A 0.4 m cube's base corner v = (0.2, 0.2, 0) with a rounded rim: hull vertices 3 cm out along
+    # both edges' directions, 1.5 mm up. Any tilt onto v within 90 deg of the CoM's direction sinks one
+    # of them by more than the tolerance (at 45 deg: 0.03 sin 45 sin 8 - 0.0015 = 1.45 mm).
+    cube = np.array([(x, y, z) for x in (-0.2, 0.2) for y in (-0.2, 0.2) for z in (0.0, 0.4)])
+    model = box_model(mesh=trimesh.convex.convex_hull(np.vstack([cube, (0.23, 0.2, 0.0015), (0.2, 0.23, 0.0015)])))
+    g, v = int(np.argmax(model.normals @ np.array([0, 0, -1.0]))), _vertex_at(model, (0.2, 0.2, 0))
     assert v in poses.pivot_corners(model, 0.03)[g]
     assert v not in poses.pivot_corners(model, 0.03, np.radians(8))[g]
+    assert len(poses.pivot_corners(model, 0.03, np.radians(8))[g]) == 3  # the other three corners
     with pytest.raises(poses.InputError):
-        poses.tilt_direction(model, model.X_TO[g], v, np.radians(8), 0.03)
+        poses.tilt_direction(model, model.X_TO[g], v, np.radians(8))
