@@ -680,10 +680,9 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
     """Roll the object from its resting face over hull edge ``(v0, v1)`` until it rests on a stable face.
 
     The same roll as the pose sampler's (:func:`_tumble`): over the edge onto the adjacent hull face;
-    while that face is not stable (a narrow face between a foot and the body), on over its next edge
-    (:func:`_next_roll_edge`); settled flat on the stable face it ends on (:func:`_settle`). Raises
-    ``InputError`` when ``(v0, v1)`` is not an edge of the resting face or no stable face comes
-    within ``max_faces`` faces or half a turn.
+    while that face is not stable (a narrow face between a foot and the body), over the edge of it
+    beyond which the CoM lies. Raises ``InputError`` when ``(v0, v1)`` is not an edge of the resting
+    face or no stable face comes within ``max_faces`` faces or half a turn.
     """
     down = se3.rotate_vectors(X_WO, model.normals)[:, 2]
     g = int(np.argmin(down))  # the resting face: outward normal straight down
