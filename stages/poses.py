@@ -713,38 +713,24 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
             return Roll(X_seg=np.stack([s[0] for s in segs]), p_axis=np.stack([s[1] for s in segs]),
                         a_axis=np.stack([s[2] for s in segs]), angle=np.array([s[3] for s in segs]),
                         edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=_settle(model, X, g))
-        e = _next_roll_edge(model, X, g, e)
-        if e < 0:
+        com = se3.transform_points(X, model.com)
+        centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
+        best, best_d = -1, 0.0
+        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
+            if e2 == e:
+                continue
+            q = se3.transform_points(X, model.vertices[model.edges[e2]])
+            d = q[1, :2] - q[0, :2]
+            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
+            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
+                nrm = -nrm  # outward from the face
+            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
+            if beyond > best_d:
+                best, best_d = e2, beyond
+        if best < 0:
             break
+        e = int(best)
     raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
-
-
-def _next_roll_edge(model: ObjectModel, X: np.ndarray, g: int, e: int) -> int:
-    """The hull edge of the narrow face ``g`` (on the table at ``X``, entered over edge ``e``) that the
-    roll goes on over (:func:`roll_segments`), or -1: the edge the CoM lies farthest beyond, where
-    the object falls on by itself; when the CoM lies back over ``e`` (the object would fall back),
-    the edge straight ahead, farthest along the roll from ``e`` (the push carries it through the
-    face, §5.2.2: the pusher's release comes after the CoM's highest point, ``graph.release_angle``)."""
-    com = se3.transform_points(X, model.com)
-    centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
-    p_in = se3.transform_points(X, model.vertices[model.edges[e]]).mean(axis=0)
-    ahead = centre[:2] - p_in[:2]
-    best, best_d, front, front_d = -1, 0.0, -1, 0.0
-    for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
-        if e2 == e:
-            continue
-        q = se3.transform_points(X, model.vertices[model.edges[e2]])
-        d = q[1, :2] - q[0, :2]
-        nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
-        if np.dot(centre[:2] - q[0, :2], nrm) > 0:
-            nrm = -nrm  # outward from the face
-        beyond = float(np.dot(com[:2] - q[0, :2], nrm))
-        if beyond > best_d:
-            best, best_d = int(e2), beyond
-        along = float(np.dot(nrm, ahead))
-        if along > front_d:
-            front, front_d = int(e2), along
-    return best if best >= 0 else front
 
 
 #: How far (rad) a roll over a hull edge may leave the next face off the table's plane: the hull's

@@ -97,25 +97,6 @@ def test_a_roll_onto_a_face_a_little_off_its_edge_settles_flat_on_it(off_deg, la
     assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) <= off_deg + 1e-6
 
 
-def test_a_roll_onto_a_narrow_face_the_com_stays_behind_is_pushed_on_through_it():
-    # A 0.4 m cube whose edge between the bottom and the side x = +0.2 is cut from (0.19, y, 0) to
-    # (0.2, y, 0.04). From the side face, the roll over the cut's upper edge lays the cube on the cut,
-    # where its CoM lies back over that edge: it would fall back. The push carries it on over the cut's
-    # lower edge onto the bottom, a quarter turn in all.
-    cube = [(x, y, z) for x in (-0.2, 0.2) for y in (-0.2, 0.2) for z in (0.0, 0.4) if (x, z) != (0.2, 0.0)]
-    cut = [(0.19, y, 0.0) for y in (-0.2, 0.2)] + [(0.2, y, 0.04) for y in (-0.2, 0.2)]
-    model = box_model(mesh=trimesh.convex.convex_hull(np.array(cube + cut)))
-    side = int(np.argmax(model.normals @ np.array([1.0, 0, 0])))
-    bottom = int(np.argmax(model.normals @ np.array([0, 0, -1.0])))
-    narrow = int(np.argmax(model.normals @ np.array([0.97, 0, -0.24])))
-    assert model.stable[side] and model.stable[bottom] and not model.stable[narrow]
-    a, b = _vertex_at(model, (0.2, -0.2, 0.04)), _vertex_at(model, (0.2, 0.2, 0.04))
-    roll = poses.roll_segments(model, model.X_TO[side], a, b)
-    assert roll.face == bottom and len(roll.angle) == 2
-    assert roll.total == pytest.approx(np.pi / 2, abs=1e-9)
-    np.testing.assert_allclose(se3.rotate_vectors(roll.X_end, model.normals[bottom]), [0, 0, -1.0], atol=1e-9)
-
-
 def test_overhang_at_the_table_edge_is_sp_until_the_com_passes_the_edge_then_usp():
     model = box_model()  # footprint 0.2 (x) x 0.3 (y)
     # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: the table edge cuts the support, but the
