@@ -69,6 +69,34 @@ def test_tumbling_a_box_lands_on_the_adjacent_face():
         assert v[:, 2].max() == pytest.approx(0.2, abs=1e-9) or v[:, 2].max() == pytest.approx(0.3, abs=1e-9)
 
 
+@pytest.mark.parametrize("off_deg, lands", [(0.3, True), (2.0, False)])
+def test_a_roll_onto_a_face_a_little_off_its_edge_settles_flat_on_it(off_deg, lands):
+    # Merged hull faces meet at edges that are not exactly their planes' intersection: the side face's
+    # normal turned by off_deg about the vertical. Within ROLL_ALIGN (1 deg) the roll lands and settles
+    # on that face (its normal straight down, its lowest corner on the table); beyond, it does not land.
+    from dataclasses import replace
+    model = box_model()
+    X0, g = upright(model)
+    e = int(np.flatnonzero((model.edge_faces == g).any(axis=1))[0])
+    g2 = int(model.edge_faces[e, 1] if model.edge_faces[e, 0] == g else model.edge_faces[e, 0])
+    normals = model.normals.copy()
+    normals[g2] = se3.rot_z(np.radians(off_deg)) @ normals[g2]
+    off = replace(model, normals=normals)
+    a, b = (int(x) for x in off.edges[e])
+    if not lands:
+        with pytest.raises(poses.InputError):
+            poses.roll_segments(off, X0, a, b)
+        return
+    roll = poses.roll_segments(off, X0, a, b)
+    assert roll.face == g2
+    np.testing.assert_allclose(se3.rotate_vectors(roll.X_end, normals[g2]), [0, 0, -1.0], atol=1e-12)
+    sup = se3.transform_points(roll.X_end, off.vertices[np.asarray(off.support[g2])])
+    assert sup[:, 2].min() == pytest.approx(0.0, abs=1e-12)
+    # The settling turn is the small misalignment, not another roll.
+    R = roll.X_end[:3, :3] @ roll.poses([roll.total])[0][:3, :3].T
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) <= off_deg + 1e-6
+
+
 def test_overhang_at_the_table_edge_is_sp_until_the_com_passes_the_edge_then_usp():
     model = box_model()  # footprint 0.2 (x) x 0.3 (y)
     # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: the table edge cuts the support, but the
