@@ -30,7 +30,15 @@ return to a pose, so it grows like a tree, and breadth first over all poses a ca
 on the start's placement: the placements a tumble reaches are hardly expanded past their landing,
 and a goal on another face is not reached. Each placement therefore keeps its own breadth-first
 queue and the placements take turns: the start's and the goal's alike, any other ``other_share``
-as often.
+as often. With a goal and ``goal_reach_share`` > 0 (the scene's ``planner.goal_reach``, 0 by
+default), once the goal is joined to that lattice (``_insert_goal``, ``_join_trees``), the lattice
+grows on from its unexpanded poses on the start's and the goal's placements by
+``goal_reach_share`` of ``max_poses`` more, by weighted A* (Pohl's static weighting): the path's
+length from the start (CoM in plan view plus ``yaw_weight`` m per rad of heading, summed over its
+steps) plus ``goal_bias`` times the pose's distance to the goal by the same measure (to the goal's
+CoM alone on another placement), and is joined to the goal and its lattice again. It reaches out to a goal
+that the breadth-first lattice never nears, and leaves that lattice and its joins (whose short
+pivots make short plans) as they were.
 
 Pivot corners: the support polygon of a curved foot has many hull vertices on its rim; vertices of a
 placement's support polygon closer than ``corner_cluster`` form one corner, represented by the vertex
@@ -81,6 +89,13 @@ class Params:
     tree_joins: int = 12
     tree_candidates: int = 80
     yaw_weight: float = 0.2
+    #: After its ``max_poses`` breadth first and the goal's joins, the start's lattice grows on from its
+    #: unexpanded poses on the start's and the goal's placements by ``goal_reach_share`` of ``max_poses``
+    #: kept poses more, by weighted A* toward the goal: path length from the start plus ``goal_bias``
+    #: times the distance to the goal (CoM in plan view plus ``yaw_weight`` m per rad of heading on the
+    #: goal's placement); 0: breadth first alone.
+    goal_reach_share: float = 0.0
+    goal_bias: float = 4.0
     #: USP: the object rests on at least this much table (m, along its contact with the table) and
     #: its CoM lies at most this far beyond that contact (m), where one ball holds it.
     min_usp_edge: float = 0.05
@@ -276,98 +291,141 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m;
     ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
     """
-    corners = pivot_corners(model, params.corner_cluster, params.tilt)
-    half = np.asarray(table_size, dtype=float) / 2
-    collide = _make_object_collision_fn(model, obstacles)
-    rows: list[dict] = []
-    links: list[tuple] = []
-    index: dict[tuple, list[int]] = {}
+    lat = _Lattice(model, table_size, obstacles, params)
+    rows, add, corners = lat.rows, lat.add, lat.corners
+    lat.share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
+    first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
+    popped = lat.grow([first], params.max_poses)  # breadth first, at most max_poses poses
+    n_tree = len(rows)
+    if goal is None:
+        return _to_pose_set(rows, lat.links)
+    goal_id = _insert_goal(model, corners, rows, add, *goal, params)
+    n_start = len(rows)
 
-    def classify(X: np.ndarray, g: int) -> tuple[str, str, float]:
-        return classify_pose(model, X, g, half, collide, params)[:3]
+    def ok(lo: int, hi: int) -> list[int]:  # the kept poses of rows lo..hi - 1 but the goal
+        return [i for i in range(lo, hi) if rows[i]["status"] == "ok" and i != goal_id]
 
-    def key_of(X: np.ndarray, g: int) -> tuple[int, float, float, float]:
-        com = se3.transform_points(X, model.com)
-        R = X[:3, :3] @ model.X_TO[g][:3, :3].T
+    if goal_id >= 0 and params.goal_tree_share > 0:
+        start_keys = np.array([r["key"] for r in rows[:n_tree] if r["status"] == "ok"], dtype=float)  # start first
+        lat.grow([goal_id], int(np.ceil(params.goal_tree_share * params.max_poses)), toward=start_keys)
+        _join_trees(model, corners, rows, add, ok(0, n_start), [goal_id, *ok(n_start, len(rows))], params)
+    if goal_id >= 0 and params.goal_reach_share > 0:  # on from the unexpanded poses, A* toward the goal
+        n_reach = len(rows)
+        leaves = [i for i in ok(0, n_tree) if i not in popped]
+        lat.grow(leaves, int(np.ceil(params.goal_reach_share * params.max_poses)),
+                 toward=np.array([rows[goal_id]["key"]], dtype=float), bias=params.goal_bias,
+                 cost=_tree_costs(rows, params), only={int(start_placement), int(goal[1])})
+        n_grown = len(rows)
+        _join_goal(model, corners, rows, add, goal_id, range(n_reach, n_grown), params)
+        _join_trees(model, corners, rows, add, ok(n_reach, n_grown), [goal_id, *ok(n_start, n_reach)], params)
+    return _to_pose_set(rows, lat.links, goal_id)
+
+
+class _Lattice:
+    """The pose lattice as it grows: its poses (``rows``, dicts with ``X``, ``g``, ``kind``, ``status``,
+    ``parent``, ``primitive``, ``vertex``, ``edge``, ``angle``, ``margin``, ``key``), the links between
+    kept poses, and a spatial hash of the keys that merges twins (module docstring)."""
+
+    def __init__(self, model: ObjectModel, table_size, obstacles, params: Params):
+        self.model, self.params, self.obstacles = model, params, obstacles
+        self.corners = pivot_corners(model, params.corner_cluster, params.tilt)
+        self.half = np.asarray(table_size, dtype=float) / 2
+        self.collide = _make_object_collision_fn(model, obstacles)
+        self.rows: list[dict] = []
+        self.links: list[tuple] = []
+        self.index: dict[tuple, list[int]] = {}
+        self.share: dict[int, float] = {}  # expansions per turn of the placements (module docstring)
+
+    def key_of(self, X: np.ndarray, g: int) -> tuple[int, float, float, float]:
+        """(placement, CoM x, CoM y, yaw) of the object at ``X`` on placement ``g`` (m, rad, W)."""
+        com = se3.transform_points(X, self.model.com)
+        R = X[:3, :3] @ self.model.X_TO[g][:3, :3].T
         return g, com[0], com[1], float(se3.yaw_of(R))
 
-    def find(k) -> int:
+    def find(self, k) -> int:
+        """The row of the pose with key ``k`` up to ``merge_xy`` and ``merge_yaw``, or -1."""
         g, x, y, yaw = k
-        cx, cy = int(np.floor(x / params.merge_xy)), int(np.floor(y / params.merge_xy))
+        m = self.params.merge_xy
+        cx, cy = int(np.floor(x / m)), int(np.floor(y / m))
         for dx in (-1, 0, 1):
             for dy in (-1, 0, 1):
-                for i in index.get((g, cx + dx, cy + dy), ()):
-                    _, x2, y2, yaw2 = rows[i]["key"]
+                for i in self.index.get((g, cx + dx, cy + dy), ()):
+                    _, x2, y2, yaw2 = self.rows[i]["key"]
                     dyaw = abs((yaw - yaw2 + np.pi) % (2 * np.pi) - np.pi)
-                    if np.hypot(x - x2, y - y2) < params.merge_xy and dyaw < params.merge_yaw:
+                    if np.hypot(x - x2, y - y2) < m and dyaw < self.params.merge_yaw:
                         return i
         return -1
 
-    def add(X, g, parent, primitive, vertex, edge, angle) -> tuple[int, bool]:
+    def add(self, X, g, parent, primitive, vertex, edge, angle) -> tuple[int, bool]:
         """Add a pose (or find its twin); returns its row and whether it is new."""
-        k = key_of(X, g)
-        found = find(k)
-        swept_hit = parent >= 0 and obstacles and _swept_hits(model, collide, rows[parent]["X"], X, primitive,
-                                                              vertex, edge)
+        rows, model = self.rows, self.model
+        k = self.key_of(X, g)
+        found = self.find(k)
+        swept_hit = parent >= 0 and self.obstacles and _swept_hits(model, self.collide, rows[parent]["X"], X,
+                                                                   primitive, vertex, edge)
         if found >= 0:
             if parent >= 0 and rows[found]["status"] == "ok" and found != parent and not swept_hit:
-                links.append((parent, found, primitive, vertex, edge, angle))
+                self.links.append((parent, found, primitive, vertex, edge, angle))
             return found, False
-        status, kind, margin = classify(X, g)
+        status, kind, margin = classify_pose(model, X, g, self.half, self.collide, self.params)[:3]
         if swept_hit and status == "ok":
             status = "obstacle"
         i = len(rows)
         rows.append(dict(X=X, g=g, kind=kind, status=status, parent=parent, primitive=primitive, vertex=vertex,
                          edge=edge, angle=angle, margin=margin, key=k))
-        index.setdefault((g, int(np.floor(k[1] / params.merge_xy)), int(np.floor(k[2] / params.merge_xy))),
-                         []).append(i)
+        m = self.params.merge_xy
+        self.index.setdefault((g, int(np.floor(k[1] / m)), int(np.floor(k[2] / m))), []).append(i)
         if status == "ok" and parent >= 0:
-            links.append((parent, i, primitive, vertex, edge, angle))
+            self.links.append((parent, i, primitive, vertex, edge, angle))
         return i, True
 
-    share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
+    def _priority(self, j: int, toward, bias: float, cost: dict) -> float:
+        if toward is None:
+            return float(j)  # breadth first
+        near = _nearness(self.rows[j]["key"], toward, self.params)
+        return near if bias < 0 else cost[j] + bias * near
 
-    def grow(root: int, budget: int, toward: np.ndarray | None = None) -> None:
-        """Expand from ``root`` until ``budget`` new kept poses (module docstring: placements take
-        turns): breadth first, or nearest first to the lattice whose keys are ``toward`` (``_nearness``)."""
+    def grow(self, roots: list[int], budget: int, toward: np.ndarray | None = None, bias: float = -1.0,
+             cost: dict | None = None, only: set | None = None) -> set:
+        """Expand from ``roots`` until ``budget`` new kept poses (module docstring: placements take
+        turns): breadth first; nearest first to the lattice whose keys are ``toward`` (``_nearness``,
+        greedy, ``bias`` < 0); or weighted A* toward it, ``bias`` >= 0: the path's length from the start
+        (``cost`` of the roots, :func:`_step_cost` summed on) plus ``bias`` times the nearness. The
+        roots count in the budget unless ``cost`` is given (they are already in the lattice); with
+        ``only``, poses on other placements are kept but not expanded. Returns the rows expanded."""
+        rows, params = self.rows, self.params
         queues: dict[int, list] = {}  # per placement, a heap of (priority, row)
         expanded: dict[int, int] = {}
+        popped: set = set()
+        fresh = cost is None
+        cost = {r: 0.0 for r in roots} if fresh else cost  # path length from the start (m)
 
         def push(j: int) -> None:
-            priority = float(j) if toward is None else _nearness(rows[j]["key"], toward, params)
-            heapq.heappush(queues.setdefault(rows[j]["g"], []), (priority, j))
-            expanded.setdefault(rows[j]["g"], 0)
+            if only is None or rows[j]["g"] in only:
+                heapq.heappush(queues.setdefault(rows[j]["g"], []), (self._priority(j, toward, bias, cost), j))
+                expanded.setdefault(rows[j]["g"], 0)
 
-        if rows[root]["status"] == "ok":
-            push(root)
-        n_ok = len(queues)
+        for r in roots:
+            if rows[r]["status"] == "ok":
+                push(r)
+        n_ok = sum(len(q) for q in queues.values()) if fresh else 0
         while n_ok < budget:
             open_ = [g for g in queues if queues[g]]
             if not open_:
                 break
-            g = min(open_, key=lambda g: (expanded[g] / share.get(g, params.other_share), queues[g][0]))  # turns
+            g = min(open_, key=lambda g: (expanded[g] / self.share.get(g, params.other_share), queues[g][0]))
             i = heapq.heappop(queues[g])[1]
             expanded[g] += 1
-            for child in _successors(model, corners, rows[i]["X"], g, half, params):
+            popped.add(i)
+            for child in _successors(self.model, self.corners, rows[i]["X"], g, self.half, params):
                 if n_ok >= budget:
                     break
-                j, new = add(child[0], child[1], i, *child[2:])
+                j, new = self.add(child[0], child[1], i, *child[2:])
                 if new and rows[j]["status"] == "ok":
                     n_ok += 1
+                    cost[j] = cost[i] + _step_cost(rows[i]["key"], rows[j]["key"], params)
                     push(j)
-
-    first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
-    grow(first, params.max_poses)  # at most max_poses poses
-    n_tree = len(rows)
-    if goal is None:
-        return _to_pose_set(rows, links)
-    goal_id = _insert_goal(model, corners, rows, add, *goal, params)
-    if goal_id >= 0 and params.goal_tree_share > 0:
-        n_start = len(rows)
-        start_keys = np.array([r["key"] for r in rows[:n_tree] if r["status"] == "ok"], dtype=float)  # start first
-        grow(goal_id, int(np.ceil(params.goal_tree_share * params.max_poses)), toward=start_keys)
-        _join_trees(model, corners, rows, add, n_start, goal_id, params)
-    return _to_pose_set(rows, links, goal_id)
+        return popped
 
 
 def classify_pose(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, collide,
@@ -431,8 +489,17 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
     goal, new = add(np.asarray(X_goal, dtype=float), int(g_goal), -1, "goal", -1, (-1, -1), 0.0)
     if not new or rows[goal]["status"] != "ok":
         return goal if rows[goal]["status"] == "ok" else -1
+    _join_goal(model, corners, rows, add, goal, range(len(rows)), params)
+    return goal
+
+
+def _join_goal(model, corners, rows, add, goal: int, among, params: Params) -> int:
+    """Join pose ``goal`` by up to three pivots from the nearest kept poses ``among`` (row ids) on its
+    placement, the nearest of each subtree first (:func:`_insert_goal`), until ``goal_connections``
+    joins are made or ``goal_candidates`` poses were tried. Returns the joins made."""
+    X_goal, g_goal = rows[goal]["X"], rows[goal]["g"]
     c_goal = se3.transform_points(X_goal, model.com)[:2]
-    cand = [i for i, r in enumerate(rows) if r["status"] == "ok" and r["g"] == g_goal and i != goal]
+    cand = [i for i in among if rows[i]["status"] == "ok" and rows[i]["g"] == g_goal and i != goal]
     cand.sort(key=lambda i: float(np.linalg.norm(se3.transform_points(rows[i]["X"], model.com)[:2] - c_goal)))
 
     def root(i: int) -> int:  # the start or the tumble landing whose pivots reached pose i
@@ -451,7 +518,7 @@ def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> i
         joined += _connect(model, corners, rows, add, i, X_goal, g_goal, params) == goal
         if joined >= params.goal_connections:
             break
-    return goal
+    return joined
 
 
 def _nearness(key: tuple, others: np.ndarray, params: Params) -> float:
@@ -466,19 +533,34 @@ def _nearness(key: tuple, others: np.ndarray, params: Params) -> float:
     return float(np.min(np.hypot(key[1] - same[:, 1], key[2] - same[:, 2]) + params.yaw_weight * dyaw))
 
 
-def _join_trees(model, corners, rows, add, n_start: int, goal_id: int, params: Params) -> int:
-    """Join the goal's tree (rows ``n_start`` on, grown from the goal) to the start's (rows before,
-    the goal's own joins included) by up to three pivots (``stages.connect``) between the nearest pairs
-    of kept poses on one placement, nearest first (CoM distance plus ``yaw_weight`` m per rad of heading),
-    until ``tree_joins`` joins are made or ``tree_candidates`` pairs were tried. Returns the joins made.
+def _tree_costs(rows: list[dict], params: Params) -> dict:
+    """Each kept pose's path length from its tree's root (m) along its parents (:func:`_step_cost`)."""
+    cost: dict = {}
+    for i, r in enumerate(rows):  # a parent precedes its children
+        p = r["parent"]
+        cost[i] = 0.0 if p < 0 or p not in cost else cost[p] + _step_cost(rows[p]["key"], r["key"], params)
+    return cost
+
+
+def _step_cost(a: tuple, b: tuple, params: Params) -> float:
+    """Length (m) of one lattice step between pose keys ``a`` and ``b`` (placement, CoM x, y, yaw): the
+    CoM's distance in plan view plus ``yaw_weight`` m per rad of heading (on one placement)."""
+    dyaw = abs((a[3] - b[3] + np.pi) % (2 * np.pi) - np.pi) if a[0] == b[0] else 0.0
+    return float(np.hypot(a[1] - b[1], a[2] - b[2]) + params.yaw_weight * dyaw)
+
+
+def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: Params) -> int:
+    """Join kept poses ``b`` (the goal and the lattice grown from it) to kept poses ``a`` (the start's
+    lattice, or the part of it grown toward the goal) by up to three pivots (``stages.connect``)
+    between the nearest pairs of poses on one placement, nearest first (CoM distance plus
+    ``yaw_weight`` m per rad of heading), until ``tree_joins`` joins are made or ``tree_candidates``
+    pairs were tried. Returns the joins made.
 
     The start's lattice reaches the goal only when its few closed-form joins find grasps at every pose
     they pass; a lattice grown from the goal as well gives the search many more places to meet (§5.3's
     graph search then picks among them, with the motion checks deciding).
     """
-    ok = [i for i, r in enumerate(rows) if r["status"] == "ok"]
-    a = np.array([i for i in ok if i < n_start and i != goal_id], dtype=np.int64)
-    b = np.array([i for i in ok if i >= n_start or i == goal_id], dtype=np.int64)
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     if not len(a) or not len(b):
         return 0
     key = np.array([r["key"][:4] for r in rows], dtype=float)  # placement, CoM x, y, yaw

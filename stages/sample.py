@@ -490,7 +490,8 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     X0, g0 = placement_pose(scene.start, model, f"{scene.path}: start")
     pl = scene.planner
     upstream = tables["placements"].meta["params"]
-    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, usp=pl.usp, sp_margin=float(upstream["sp_margin"]),
+    pp = poses.Params(theta_t=pl.theta_t, max_poses=pl.max_poses, goal_reach_share=pl.goal_reach,
+                      usp=pl.usp, sp_margin=float(upstream["sp_margin"]),
                       corner_cluster=params.corner_cluster, tilt=pl.tilt, min_tumble_edge=params.min_tumble_edge,
                       face_tilt=np.radians(float(upstream["hull_coplanar_deg"])))
     Xg, gg = placement_pose(scene.goal, model, f"{scene.path}: goal")

@@ -242,11 +242,11 @@ def test_a_goal_the_start_lattice_cannot_join_is_reached_by_a_lattice_grown_from
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
-    alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_share=0),
-                               goal=(Xg, g))
+    prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0)
+    alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     assert not _pose_graph_connects(alone)
-    both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(max_poses=30, goal_tree_share=2),
-                              goal=(Xg, g))
+    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0)
+    both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     assert _pose_graph_connects(both)
     assert np.array_equal(both.X_WO[: len(alone.X_WO)], alone.X_WO)  # the start's lattice is unchanged
     for a, b in both.links:  # every join is an exact pivot about a vertex that stays on the table
@@ -324,10 +324,34 @@ def test_the_goals_lattice_grown_toward_the_start_meets_it_where_breadth_first_d
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.55, 0.0), yaw=np.radians(60))
-    prm = poses.Params(max_poses=30, goal_tree_share=2)
+    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0)
     assert _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
     monkeypatch.setattr(poses, "_nearness", lambda key, others, params: 0.0)
     assert not _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
+
+
+def test_the_starts_lattice_grown_on_toward_the_goal_by_weighted_a_star_reaches_it_where_breadth_first_does_not():
+    """A goal 0.5 m away on the start's face and none of the goal's own lattice. 300 poses breadth first
+    hold none within 0.25 m of it on that face, and the goal's three-pivot joins cannot reach them; 200
+    breadth first and 100 more by weighted A* toward the goal reach out to it and the goal is joined,
+    the breadth-first part and its joins unchanged."""
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.5, 0.1))
+
+    def sample(max_poses, share):
+        prm = poses.Params(max_poses=max_poses, goal_tree_share=0, goal_reach_share=share)
+        return poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
+
+    def nearest(ps):  # the kept pose on the goal's face nearest the goal, CoM in plan view (m)
+        ok = np.flatnonzero((ps.status == "ok") & (ps.placement == g) & (np.arange(len(ps.status)) != ps.goal_id))
+        com = se3.transform_points(ps.X_WO[ok], model.com)[:, :2]
+        return np.min(np.linalg.norm(com - se3.transform_points(Xg, model.com)[:2], axis=1))
+
+    bfs, bfs200, astar = sample(300, 0.0), sample(200, 0.0), sample(200, 0.5)
+    assert not _pose_graph_connects(bfs) and nearest(bfs) > 0.25
+    assert _pose_graph_connects(astar) and nearest(astar) < 0.1
+    assert np.array_equal(astar.X_WO[: len(bfs200.X_WO)], bfs200.X_WO)  # and its goal joins, first
 
 
 def _prism_model(base_xy, height=0.2):

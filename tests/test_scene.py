@@ -59,7 +59,8 @@ def rich() -> dict:
         {"type": "mesh", "mesh": "../objects/box.stl", "scale": 0.5, "xyz": [0.35, 0.25, 0.1], "yaw_deg": 0},
     ]
     d["planner"] = {"theta_t_deg": 10, "tilt_deg": 5, "usp": False,
-                    "weights": {"pivot": 0.2, "regrasp": 1, "tumble": 2}, "seed": 7, "max_poses": 50}
+                    "weights": {"pivot": 0.2, "regrasp": 1, "tumble": 2}, "seed": 7, "max_poses": 50,
+                    "goal_reach": 0.5}
     return d
 
 
@@ -140,7 +141,7 @@ def test_minimal_scene_fills_defaults(scene_dir):
     assert s.obstacles == ()
     assert (s.planner.theta_t_deg, s.planner.tilt_deg, s.planner.usp) == (15.0, 8.0, True)
     assert (s.planner.weights.pivot, s.planner.weights.regrasp, s.planner.weights.tumble) == (0.1, 0.5, 1.0)
-    assert (s.planner.seed, s.planner.max_poses) == (0, 400)
+    assert (s.planner.seed, s.planner.max_poses, s.planner.goal_reach) == (0, 400, 0.0)
     assert s.start.placement is None and s.goal.down is None and s.goal.placement == 3
     assert s.object.mesh_path == (scene_dir / "objects" / "box.stl").resolve()
     assert s.planner.theta_t == pytest.approx(math.pi / 12)
@@ -158,7 +159,7 @@ def test_round_trip_to_dict_json_load_gives_an_equal_scene(scene_dir):
 def test_to_dict_of_a_minimal_scene_lists_every_key(scene_dir):
     d = load_scene(write(scene_dir, minimal())).to_dict()
     assert set(d) == {"name", "object", "table", "robot", "obstacles", "start", "goal", "planner"}
-    assert set(d["planner"]) == {"theta_t_deg", "tilt_deg", "usp", "weights", "seed", "max_poses"}
+    assert set(d["planner"]) == {"theta_t_deg", "tilt_deg", "usp", "weights", "seed", "max_poses", "goal_reach"}
     assert d["goal"] == {"placement": 3, "xy": [0.2, 0.1], "yaw_deg": 30.0}
 
 
@@ -201,6 +202,7 @@ BAD = [
     ("object_not_dict", _set("table", [0.9, 0.6]), "table", "JSON object"),
     ("usp_not_bool", _set("planner", {"usp": "yes"}), "planner.usp", "true or false"),
     ("seed_not_int", _set("planner", {"seed": 1.5}), "planner.seed", "integer"),
+    ("goal_reach_negative", _set("planner", {"goal_reach": -0.5}), "planner.goal_reach", "must be >= 0"),
     ("mass_nan", _set("object.mass", float("nan")), "object.mass", "finite"),
     ("height_inf", _set("table.height", float("inf")), "table.height", "finite"),
     ("base_nan", _set("robot.base_xyz", [0.0, float("nan"), 0.0]), "robot.base_xyz[1]", "finite"),
