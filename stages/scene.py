@@ -58,9 +58,9 @@ Schema (keys marked * are required; the others take the default shown)::
       max_poses     int >= 1: object poses sampled breadth first from the start, default 400; the
                     lattice grown from the goal adds a quarter as many, and the joins a few more
       goal_reach    number in [0, 10]: then grow the lattice on toward the goal by weighted A*, this
-                    fraction of max_poses more (``stages.poses``), default 0. It reaches goals the
-                    breadth-first lattice does not (rotate goals 11 -> 14 of 20 on the benchmark at 0.5)
-                    but opens paths with more pivots that the edge weights call cheaper (issue 14)
+                    fraction of max_poses more (``stages.poses``), default 0: it reaches goals the
+                    breadth-first lattice does not, and may open paths with more pivots that the edge
+                    weights call cheaper
 
 Any problem raises :class:`~stages.errors.InputError` with one line naming the file and the key path,
 e.g. ``scenes/x.json: object.mass: must be > 0 (got -1)``; invalid JSON names the line and column.

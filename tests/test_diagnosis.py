@@ -141,6 +141,13 @@ def test_scene_goal_beyond_a_small_lattice_is_not_connected(piano):
     assert d["causes"] == ["goal_not_connected"] and d["goal"]["grasps"] > 0 and 21 < d["lattice_poses"] <= 26
 
 
+def test_scene_goal_reach_grows_the_lattice_on_toward_the_goal(piano):
+    """planner.goal_reach reaches the sampler: the same 20-pose scene grows up to 40 poses more toward the
+    goal 0.4 m away, beyond the 26 of the breadth-first and the goal's lattices."""
+    p = plan_scene(piano, "reach", **{"goal.xy": [0.40, 0.0], "planner.max_poses": 20, "planner.goal_reach": 2})
+    assert p["diagnosis"]["lattice_poses"] > 26
+
+
 def test_scene_goal_on_its_back_without_tumbling_has_no_tumble_to_its_face(piano):
     p = plan_scene(piano, "back", plan.Params(no_tumble=True), **{"goal.down": [0, 1, 0], "planner.max_poses": 20})
     d = p["diagnosis"]
