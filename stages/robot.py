@@ -1179,7 +1179,8 @@ def make_collision_fn(robot: Robot, table: tuple | None = None, obstacles=(), ob
     object_mesh : trimesh.Trimesh of the object in its frame O, or None.
     margin : m; primitives closer than this count as colliding.
     link_clearance : m; the arms' links other than the ball end-effectors closer than this to the
-        object (but not touching it, by ``margin``) fail with ``object_clearance:<link>/object``.
+        object (but not touching it, by ``margin``) fail with ``object_clearance:<link>/object``, and
+        closer than this to the table or an obstacle with ``env_collision:<link>/<table or obstacle>``.
     tool_clearance : m; the same for the ball's parent link (the stick that carries it); None: as
         ``link_clearance``.
     threads : worker threads, each checking a slice of the rows (batches of at least 1024 rows); the
@@ -1260,6 +1261,15 @@ class CollisionFn:
                         else np.zeros((0, 4, 4)))
         self.trunk_box_pairs, self.trunk_cap_pairs, self.intra_pairs, self.lr_pairs = _self_pairs(robot)
         self.cores = [_core_balls(a) for a in self.arms]
+        self.env_margin = [self._link_margins(a, self.margin) for a in self.arms]
+
+    def _link_margins(self, a: Arm, mg: float) -> np.ndarray:
+        """``(C,)`` m: each capsule's margin, ``mg`` for the ball, at least ``tool_clearance`` for its parent
+        link (the stick) and ``link_clearance`` for the other links: the clearances the arm keeps from the
+        object, the table and the obstacles alike (a link that grazes them in the plan touches them in
+        physics, which tracks the joints only to a few mm)."""
+        ball, tool = a.cap_link == a.eef_index, a.cap_link == a.eef_index - 1
+        return np.where(ball, mg, np.maximum(mg, np.where(tool, self.tool_clearance, self.link_clearance)))
 
     def __call__(self, q_left: np.ndarray, q_right: np.ndarray, X_WO: np.ndarray | None = None,
                  touching: np.ndarray | None = None, *, blame: bool = False,
@@ -1281,7 +1291,7 @@ class CollisionFn:
         return out if blame else out[:2]
 
     def _check(self, q_left, q_right, X_WO, touching, mg_obj: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        arms, mg = self.arms, self.margin
+        arms, mg, emg = self.arms, self.margin, self.env_margin
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
         if X_WO is not None:
@@ -1302,36 +1312,37 @@ class CollisionFn:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 c, k = np.nonzero(_point_box_dist2(_to_frame(Xi, _rows(mids[s], rows)), h[:, None, None])
-                                  <= (rho[s] + mg) ** 2)
+                                  <= (rho[s] + emg[s][:, None]) ** 2)
                 r = rows[k]
                 hit = _seg_box_dist2(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), h[:, None]) \
-                    < (a.cap_r[c] + mg) ** 2
+                    < (a.cap_r[c] + emg[s][c]) ** 2
                 st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, ea, eb, er in self.caps:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 erho = np.linalg.norm(eb - ea) / 2 + er
                 dm = _rows(mids[s], rows) - ((ea + eb) / 2)[:, None, None]
-                c, k = np.nonzero(_dot(dm, dm) <= (rho[s] + erho + mg) ** 2)
+                c, k = np.nonzero(_dot(dm, dm) <= (rho[s] + erho + emg[s][:, None]) ** 2)
                 r = rows[k]
                 ones = np.ones(len(c))
                 hit = _seg_seg_dist2(A[:, c, r], B[:, c, r], ea[:, None] * ones, eb[:, None] * ones) \
-                    < (a.cap_r[c] + er + mg) ** 2
+                    < (a.cap_r[c] + er + emg[s][c]) ** 2
                 st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, rad, hh in self.cyls:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 Pm = _to_frame(Xi, _rows(mids[s], rows))
                 dm = _point_cyl_dist(Pm.reshape(3, -1), rad, hh).reshape(Pm.shape[1:])
-                c, k = np.nonzero(dm <= rho[s] + mg)
+                c, k = np.nonzero(dm <= rho[s] + emg[s][:, None])
                 r = rows[k]
-                hit = _seg_cyl_dist(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), rad, hh) < a.cap_r[c] + mg
+                hit = _seg_cyl_dist(_to_frame(Xi, A[:, c, r]), _to_frame(Xi, B[:, c, r]), rad, hh) \
+                    < a.cap_r[c] + emg[s][c]
                 st.fail(r[hit], "env_collision", names[s][c[hit]], name, s)
         for name, Xi, msh in self.meshes:
             for s, a in enumerate(arms):
                 (A, B), rows = ends[s], st.live()
                 k, c = _mesh_hits(msh, np.broadcast_to(Xi, (len(rows), 4, 4)), _rows(A, rows), _rows(B, rows),
-                                  a.cap_r, mg, np.ones((len(a.cap_r), len(rows)), bool))
+                                  a.cap_r, emg[s], np.ones((len(a.cap_r), len(rows)), bool))
                 st.fail(rows[k], "env_collision", names[s][c], name, s)
 
         # Self: the trunk's boxes and capsules.
@@ -1404,8 +1415,7 @@ class CollisionFn:
         (its parent link: ``tool_clearance``) of the object, on the rows left, as ``object_clearance``."""
         a = self.arms[s]
         ball = a.cap_link == a.eef_index
-        tool = a.cap_link == a.eef_index - 1
-        wide = np.where(ball, mg_obj, np.maximum(mg_obj, np.where(tool, self.tool_clearance, self.link_clearance)))
+        wide = self._link_margins(a, mg_obj)
         names = np.asarray(a.cap_names)
         for kind, margin in (("env_collision", mg_obj), ("object_clearance", wide)):
             rows = st.live()

@@ -78,7 +78,8 @@ class Params:
     away_angle: float = np.radians(150.0)
     #: The arms' links keep this far from the object (m), the sticks that carry the balls
     #: ``stick_clearance``, in every check of the planner (the grasps here; pivots, tumbles, holds and
-    #: transits read them from ``grasps.parquet``), or fail as ``object_clearance``. Physics counts a
+    #: transits read them from ``grasps.parquet``), or fail as ``object_clearance``; and as far from the
+    #: table and the obstacles, or fail as ``env_collision``. Physics counts a
     #: robot-object contact from where Bullet reports contact points: 3.6 mm apart for the arm's
     #: 45-101 mm capsules, 1.0 mm for the 8 mm stick (against the object's hulls, measured); its
     #: compliant arms came up to 3.0 mm (links) and 2.7 mm (sticks) closer to the object than planned

@@ -422,6 +422,24 @@ def test_a_link_within_the_clearance_of_the_object_fails_as_object_clearance(sce
     assert why0.tolist() == [reason if gap < 0 else "ok"]
 
 
+@pytest.mark.parametrize("kind", ["mesh", "box"])
+@pytest.mark.parametrize("gap, clear", [(0.003, False), (0.012, True)])
+def test_a_link_keeps_its_clearance_from_the_table_and_obstacles_too(scene_robot, kind, gap, clear):
+    """The links keep the same clearance (7 mm) from the table and the obstacles as from the object
+    (the table is the checker's first box): an obstacle 3 mm under the wrist is refused as
+    ``env_collision``, 12 mm under it passes; without the clearance, 3 mm passes."""
+    q = scene_robot.arms["left"].q_rest
+    sphere = _ball_near_link(scene_robot, "left", q, "left_link_6_b", gap)
+    if kind == "mesh":
+        ob = ("mesh", sphere, np.eye(4), "ob")
+    else:  # a 1 cm cube with its top where the sphere's top is (gap m under the wrist)
+        lo, hi = sphere.bounds
+        ob = ("box", (0.01, 0.01, 0.01), se3.make_transform(np.eye(3), [*((lo + hi) / 2)[:2], hi[2] - 0.005]), "ob")
+    check = make_collision_fn(scene_robot, obstacles=[ob], link_clearance=0.007)
+    assert check(q[None], q[None])[1].tolist() == ["ok" if clear else "env_collision:left_link_6_b/ob"]
+    assert make_collision_fn(scene_robot, obstacles=[ob])(q[None], q[None])[1].tolist() == ["ok"]
+
+
 @pytest.mark.parametrize("gap, reason", [(0.003, "object_clearance:left_stick/object"), (0.005, "ok")])
 def test_the_stick_keeps_its_own_clearance(scene_robot, gap, reason):
     """The ball's parent link (the stick) keeps ``tool_clearance`` (4 mm here), the other links 7 mm: a
