@@ -109,6 +109,10 @@ class Params:
     usp_margin: float = 0.02
     #: Expansions a placement other than the start's and the goal's gets per one of theirs.
     other_share: float = 0.1
+    #: The object in motion (a pivot's tilt, turn and lowering; a tumble) keeps this far (m) from the
+    #: obstacles and the robot's trunk: physics moves it a few mm off its plan (tilt, slip). A pose at
+    #: rest only must not overlap them.
+    sweep_clearance: float = 0.01
     #: How far from coplanar the hull triangles of one placement face may be (rad): the analysis'
     #: ``hull_coplanar_deg``. A face's corners lie off its plane by up to about its tangent times the
     #: face's size, which the goal's pivots (``connect.Params.face_tilt``) must not take for an error.
@@ -331,6 +335,7 @@ class _Lattice:
         self.corners = pivot_corners(model, params.corner_cluster, params.tilt)
         self.half = np.asarray(table_size, dtype=float) / 2
         self.collide = _make_object_collision_fn(model, obstacles)
+        self.sweep_collide = _make_object_collision_fn(model, obstacles, params.sweep_clearance)
         self.rows: list[dict] = []
         self.links: list[tuple] = []
         self.index: dict[tuple, list[int]] = {}
@@ -361,8 +366,8 @@ class _Lattice:
         rows, model = self.rows, self.model
         k = self.key_of(X, g)
         found = self.find(k)
-        swept_hit = parent >= 0 and self.obstacles and _swept_hits(model, self.collide, rows[parent]["X"], X,
-                                                                   primitive, vertex, edge)
+        swept_hit = parent >= 0 and self.obstacles and _swept_hits(model, self.sweep_collide, rows[parent]["X"], X,
+                                                                   primitive, vertex, edge, self.params.tilt)
         if found >= 0:
             if parent >= 0 and rows[found]["status"] == "ok" and found != parent and not swept_hit:
                 self.links.append((parent, found, primitive, vertex, edge, angle))
@@ -699,9 +704,11 @@ def _successors(model, corners, X, g, half, params):
 
 
 def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarray, primitive: str, vertex: int,
-                edge, fractions=(0.25, 0.5, 0.75)) -> bool:
-    """Does the object hit an obstacle on its way from ``X_from`` to ``X_to`` (a pivot about the vertical
-    through ``vertex`` or a tumble over ``edge``), checked at a few fractions of the rotation?"""
+                edge, tilt: float, fractions=(0.25, 0.5, 0.75)) -> bool:
+    """Does the object hit an obstacle on its way from ``X_from`` to ``X_to``, checked at a few fractions
+    of the rotation: a tumble over ``edge``, or a pivot about the vertical through ``vertex``, both as
+    turned flat and as tilted by ``tilt`` (rad) onto the vertex (``mpc.pivot_reference``'s tilt, turn
+    and lowering: the tilt leans the object's top over, toward whatever stands beside it)?"""
     R_rel = X_to[:3, :3] @ X_from[:3, :3].T
     rotvec = se3.quat_from_matrix(R_rel)
     angle = 2.0 * np.arctan2(np.linalg.norm(rotvec[:3]), rotvec[3])
@@ -710,7 +717,18 @@ def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarra
     axis = rotvec[:3] / np.linalg.norm(rotvec[:3])
     point = model.vertices[vertex] if primitive == "pivot" else model.vertices[edge[0]]
     point = se3.transform_points(X_from, point)
-    return any(collide(se3.transform_about_line(point, axis, s * angle) @ X_from) for s in fractions)
+    if any(collide(se3.transform_about_line(point, axis, s * angle) @ X_from) for s in fractions):
+        return True
+    if primitive != "pivot":
+        return False
+    try:
+        d = tilt_direction(model, X_from, vertex, tilt)
+    except InputError:  # no tilt stands it on this vertex: no pivot edge (graph), nothing to sweep
+        return False
+    d = se3.transform_points(X_from, model.com) - point if d is None else d
+    lean = np.cross([d[0], d[1], 0.0], [0.0, 0.0, 1.0])
+    X_tilt = se3.transform_about_line(point, lean / np.linalg.norm(lean), tilt) @ X_from
+    return any(collide(se3.transform_about_line(point, axis, s * angle) @ X_tilt) for s in (0.0, *fractions, 1.0))
 
 
 def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 16):
@@ -919,27 +937,35 @@ def obstacles_hit(model: ObjectModel, X: np.ndarray, obstacles) -> list[str]:
     return [ob.name for ob in obstacles if fcl.collide(obj, fcl_object(ob), req, fcl.CollisionResult())]
 
 
-def _make_object_collision_fn(model: ObjectModel, obstacles):
-    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` hit any obstacle (fcl)."""
+def _make_object_collision_fn(model: ObjectModel, obstacles, clearance: float = 0.0):
+    """A callable ``collide(X_WO) -> bool``: does the object at ``X_WO`` come within ``clearance`` (m)
+    of any obstacle (fcl; boxes and cylinders grown by it, a mesh by fcl's distance)."""
     if not obstacles:
         return lambda X: False
     obj = _object_fcl(model)
-    bodies = [fcl_object(ob) for ob in obstacles]
+    bodies = [fcl_object(ob, clearance) for ob in obstacles]
+    near = [clearance > 0 and ob.kind not in ("box", "cylinder") for ob in obstacles]
     req = fcl.CollisionRequest()
+
+    def hits(b, by_distance: bool) -> bool:
+        if by_distance:
+            return fcl.distance(obj, b, fcl.DistanceRequest(), fcl.DistanceResult()) < clearance
+        return fcl.collide(obj, b, req, fcl.CollisionResult()) > 0
 
     def collide(X: np.ndarray) -> bool:
         obj.setTransform(fcl.Transform(X[:3, :3], X[:3, 3]))
-        return any(fcl.collide(obj, b, req, fcl.CollisionResult()) for b in bodies)
+        return any(hits(b, n) for b, n in zip(bodies, near, strict=True))
 
     return collide
 
 
-def fcl_object(ob) -> fcl.CollisionObject:
-    """An fcl collision object for a ``stages.scene.ObstacleGeometry``."""
+def fcl_object(ob, grow: float = 0.0) -> fcl.CollisionObject:
+    """An fcl collision object for a ``stages.scene.ObstacleGeometry``, a box or cylinder grown by
+    ``grow`` (m) on every side (a mesh is not grown)."""
     if ob.kind == "box":
-        geom = fcl.Box(*ob.size)
+        geom = fcl.Box(*(np.asarray(ob.size, dtype=float) + 2 * grow))
     elif ob.kind == "cylinder":
-        geom = fcl.Cylinder(ob.radius, ob.height)
+        geom = fcl.Cylinder(ob.radius + grow, ob.height + 2 * grow)
     else:
         geom = fcl.BVHModel()
         geom.beginModel(len(ob.vertices), len(ob.faces))

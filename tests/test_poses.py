@@ -198,6 +198,30 @@ def test_the_goals_placement_is_expanded_past_its_tumble_landings():
     assert ps.goal_id >= 0 and np.any(ps.links[:, 1] == ps.goal_id)
 
 
+@pytest.mark.parametrize("gap, clearance, hits", [(0.02, 0.0, True), (0.04, 0.0, False), (0.04, 0.01, True)])
+def test_a_pivot_is_swept_tilted_onto_its_vertex_and_keeps_the_clearance(gap, clearance, hits):
+    """A wall beside the box's -x face, its bottom 20 cm up: turning the box flat by -15 deg about its
+    (-x, -y) bottom corner clears it, but tilted 8 deg onto that corner the box's top leans 5.6 cm
+    outward (0.4 m x sin 8 deg), into a wall 2 cm off; 4 cm off it clears, unless the motion keeps
+    a 1 cm clearance. The lattice refuses the pivot's pose when the sweep hits."""
+    from stages.scene import ObstacleGeometry
+
+    model = box_model()
+    X0, g = upright(model)
+    V = se3.transform_points(X0, model.vertices)
+    v = int(np.flatnonzero((V[:, 2] < 1e-9) & (V[:, 0] < 0) & (V[:, 1] < 0))[0])
+    wall = ObstacleGeometry("wall", "box", se3.make_transform(np.eye(3), [V[v, 0] - gap - 0.005, 0.0, 0.3]),
+                            size=(0.01, 0.3, 0.2))
+    X1 = se3.transform_about_line(V[v], np.array([0.0, 0.0, 1.0]), np.radians(-15)) @ X0
+    col = poses._make_object_collision_fn(model, [wall], clearance)
+    assert not col(X0) and not col(X1)
+    assert not poses._swept_hits(model, col, X0, X1, "pivot", v, (-1, -1), 0.0)
+    assert poses._swept_hits(model, col, X0, X1, "pivot", v, (-1, -1), np.radians(8)) == hits
+    ps = poses.sample_poses(model, X0, g, (2.0, 2.0), [wall], poses.Params(max_poses=5, sweep_clearance=clearance))
+    child = np.flatnonzero((ps.parent == 0) & (ps.vertex == v) & np.isclose(ps.angle, np.radians(-15)))
+    assert len(child) == 1 and ps.status[child[0]] == ("obstacle" if hits else "ok")
+
+
 def test_the_robots_trunk_is_an_obstacle_for_the_object():
     from stages.robot import load_robot
     from stages.sample import trunk_obstacles
