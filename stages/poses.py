@@ -30,7 +30,7 @@ return to a pose, so it grows like a tree, and breadth first over all poses a ca
 on the start's placement: the placements a tumble reaches are hardly expanded past their landing,
 and a goal on another face is not reached. Each placement therefore keeps its own breadth-first
 queue and the placements take turns: the start's and the goal's alike, any other ``other_share``
-as often. With a goal and ``goal_reach_share`` > 0 (the scene's ``planner.goal_reach``, 0 by
+as often. With a goal and ``goal_reach_share`` > 0 (the scene's ``planner.goal_reach``, 0.5 by
 default), once the goal is joined to that lattice (``_insert_goal``, ``_join_trees``), the lattice
 grows on from its unexpanded poses on the start's and the goal's placements by
 ``goal_reach_share`` of ``max_poses`` more, by weighted A* (Pohl's static weighting): the path's

@@ -58,9 +58,8 @@ Schema (keys marked * are required; the others take the default shown)::
       max_poses     int >= 1: object poses sampled breadth first from the start, default 400; the
                     lattice grown from the goal adds a quarter as many, and the joins a few more
       goal_reach    number in [0, 10]: then grow the lattice on toward the goal by weighted A*, this
-                    fraction of max_poses more (``stages.poses``), default 0: it reaches goals the
-                    breadth-first lattice does not, and may open paths with more pivots that the edge
-                    weights call cheaper
+                    fraction of max_poses more (``stages.poses``), default 0.5: it reaches goals the
+                    breadth-first lattice does not; 0 keeps §5.1's breadth-first lattice alone
 
 Any problem raises :class:`~stages.errors.InputError` with one line naming the file and the key path,
 e.g. ``scenes/x.json: object.mass: must be > 0 (got -1)``; invalid JSON names the line and column.
@@ -193,7 +192,7 @@ class PlannerSpec:
     weights: EdgeWeights = EdgeWeights()
     seed: int = 0
     max_poses: int = 400
-    goal_reach: float = 0.0
+    goal_reach: float = 0.5
 
     @property
     def theta_t(self) -> float:
@@ -586,7 +585,7 @@ class _Reader:
             weights=weights,
             seed=self.integer(d.get("seed", 0), _join(p, "seed"), ge=0),
             max_poses=self.integer(d.get("max_poses", 400), _join(p, "max_poses"), ge=1),
-            goal_reach=self.number(d.get("goal_reach", 0.0), _join(p, "goal_reach"), ge=0, le=10),
+            goal_reach=self.number(d.get("goal_reach", PlannerSpec.goal_reach), _join(p, "goal_reach"), ge=0, le=10),
         )
 
 
