@@ -325,17 +325,30 @@ def test_catches_wait_under_the_overhang_and_holds_press_from_above(builds):
     """Every ok catch node: its contact on the landing face (outward normal within the catch cone of
     straight down), its ball beyond the table's edge by the clearance; every ok hold node: its contact
     on a face within that cone of straight up, its ball over the table; both with joints putting the
-    ball there. The tumbles into a catch carry the catch's reason when it is not ok."""
-    b = builds.build("exp3_obstacle")
-    scene = load_scene(builds.scene("exp3_obstacle"))
+    ball there. The tumbles into a catch carry the catch's reason when it is not ok. Exp. 3 and the
+    default scene: some of their nodes of each kind are ok, some not (Exp. 3's holds are all refused)."""
+    seen = {("catch", True): 0, ("catch", False): 0, ("hold", True): 0, ("hold", False): 0}
+    for name in ("exp3_obstacle", "default"):
+        for kind, ok in _check_catches_and_holds(builds, name).items():
+            seen[kind, True] += ok[0]
+            seen[kind, False] += ok[1]
+    assert all(n > 0 for n in seen.values()), seen
+
+
+def _check_catches_and_holds(builds, name: str) -> dict:
+    """:func:`test_catches_wait_under_the_overhang_and_holds_press_from_above` on one scene; returns
+    ``{kind: (ok nodes, refused nodes)}``."""
+    b = builds.build(name)
+    scene = load_scene(builds.scene(name))
     ctx = plan._Context(scene, builds.analysis, b / "sample", b / "graph")
     ca = artifacts.read_table(b / "graph" / "catches.parquet", "catches")
     gp, r = graph.Params(), scene.robot.ball_radius
     half = np.asarray(scene.table.size) / 2
+    counts = {}
     for kind, side in (("catch", -1.0), ("hold", 1.0)):
         rows = np.flatnonzero(ca["kind"] == kind)
         ok = rows[ca["status"][rows] == "ok"]
-        assert 0 < len(ok) < len(rows), kind
+        counts[kind] = (len(ok), len(rows) - len(ok))
         for i in ok:
             X = ctx.X_WO[ca["pose_id"][i]]
             c = ca["contact"][i]
@@ -352,6 +365,7 @@ def test_catches_wait_under_the_overhang_and_holds_press_from_above(builds):
     for n, s in zip(edges["node_b"][into].tolist(), edges["status"][into].tolist(), strict=True):
         if st[n] != "ok":
             assert s != "ok"  # the catch's reason, or the pusher's when that failed first
+    return counts
 
 
 @EXP3_NO_PLAN

@@ -141,7 +141,7 @@ def test_minimal_scene_fills_defaults(scene_dir):
     assert s.obstacles == ()
     assert (s.planner.theta_t_deg, s.planner.tilt_deg, s.planner.usp) == (15.0, 8.0, True)
     assert (s.planner.weights.pivot, s.planner.weights.regrasp, s.planner.weights.tumble) == (0.1, 0.5, 1.0)
-    assert (s.planner.seed, s.planner.max_poses, s.planner.goal_reach) == (0, 400, 0.0)
+    assert (s.planner.seed, s.planner.max_poses, s.planner.goal_reach) == (0, 400, 0.5)
     assert s.start.placement is None and s.goal.down is None and s.goal.placement == 3
     assert s.object.mesh_path == (scene_dir / "objects" / "box.stl").resolve()
     assert s.planner.theta_t == pytest.approx(math.pi / 12)
