@@ -19,8 +19,9 @@ ball holds it (§5.1, Fig. 14, 18; the grasp stage decides with the stability te
 margins a pose is neither: whether it stands alone is a matter of millimetres the robot does not
 know. It is rejected as ``off_table`` (not SP and less than ``min_usp_edge`` of contact with the table,
 or too much overhang), ``unstable`` (USP not allowed, or the CoM between the margins) or ``obstacle``
-(the object mesh, at the pose or swept by the pivot or tumble that reaches it, hits an obstacle,
-python-fcl). Poses closer than ``merge_xy`` and
+(python-fcl: the object mesh at the pose overlaps an obstacle or the robot's trunk, or swept by the
+pivot, flat and tilted onto its vertex, or the tumble that reaches it, comes within ``sweep_clearance``
+of one). Poses closer than ``merge_xy`` and
 ``merge_yaw`` on the same placement are one pose; the defaults only merge what is the same pose up
 to rounding (e.g. +θ then −θ about one vertex), so that every link is an exact pivot or tumble.
 Every pivot or tumble between two kept poses is a link.

@@ -56,7 +56,8 @@ Schema (keys marked * are required; the others take the default shown)::
                     graph (§5.1); missing keys take these defaults
       seed          int >= 0, default 0
       max_poses     int >= 1: object poses sampled breadth first from the start, default 400; the
-                    lattice grown from the goal adds a quarter as many, and the joins a few more
+                    lattice grown from the goal adds a quarter as many, goal_reach its share, and
+                    the joins a few more
       goal_reach    number in [0, 10]: then grow the lattice on toward the goal by weighted A*, this
                     fraction of max_poses more (``stages.poses``), default 0.5: it reaches goals the
                     breadth-first lattice does not; 0 keeps §5.1's breadth-first lattice alone
