@@ -25,7 +25,8 @@ impedance of the ball's centre (``Params.task = "position"``, 3 task coordinates
 joints as a posture in its null space::
 
     tau = J^T W + N (Kq (q* - q) + Dq (q*' - q')) + h(q, q')
-    W   = K_eff e + D e',   e = x* - x,   W += w F_plan,   |W| <= (1 - force_margin) F_max
+    W   = K_eff e + D e',   e = x* - x,   W += w F_plan,   |W| <= F_clip
+    F_clip = max(F_c - g max(F_sensed - F_c, 0), F_c / 2),   F_c = (1 - force_margin) F_max
 
 ``J`` is the 3 x n Jacobian of the ball centre, ``h`` gravity and Coriolis torques
 (``calculateInverseDynamics``), ``N = I - J^T Jbar^T`` the dynamically consistent null-space
@@ -63,7 +64,10 @@ is held at the planning angle by a stiff position motor.
 Force bound: ``F_max`` is the scene's ``robot.max_eef_force`` (50 N, the arm's payload), the bound
 the planner's stability check and the MPC put on each ball (the MPC on the normal component; with
 its friction pyramid the planned force's magnitude reaches 51 N on Exp. 2). The commanded force,
-feed-forward and squeeze included, is clipped below it (``force_margin``); the squeeze is made
+feed-forward and squeeze included, is clipped below it (``force_margin``), and lowered further at the
+next step by the excess of the ball's sensed force over that clip (``force_feedback``: the outer loop
+of a force limiter on the wrist sensor's reading, which contact transients would otherwise carry past
+the bound); the squeeze is made
 shallower where the planned force leaves it no room (:func:`_squeeze_depth`). The ball's measured
 force on the object (normal plus friction) is judged against ``F_max`` itself.
 
@@ -264,6 +268,10 @@ class Params:
     force_window : the measured ball force is judged averaged over this time (s): a wrist force
         sensor's bandwidth (50 Hz); single solver steps spike (up to 64 N on Exp. 2, where the
         20 ms average stays within 2 % of the bound). ``max_ball_force_step`` keeps the raw peak.
+    force_feedback : gain of the force limiter's outer loop: where a ball's sensed force (the wrist
+        sensor's reading at the last step) exceeds the commanded clip, the next step's clip is lowered
+        by this times the excess (down to half), so that contact transients do not carry the measured
+        force past the bound; 0: the clip alone.
     clip_effort : clip joint torques to the URDF's ``effort`` limits.
     model_period : physics steps between refreshes of the arms' dynamics model: Jacobian, mass
         matrix, task inertia, task gains and null-space map (60 Hz by default; the arms turn
@@ -324,6 +332,7 @@ class Params:
     force_margin: float = 0.11
     force_tolerance: float = 0.0
     force_window: float = 0.02
+    force_feedback: float = 1.0
     clip_effort: bool = True
     model_period: int = 4
     object_margin: float = 1e-4
@@ -836,6 +845,13 @@ def _contact_force(c) -> tuple[float, float, float]:
     n, d1, d2, fn, f1, f2 = c[7], c[11], c[13], c[9], c[10], c[12]
     return (fn * n[0] + f1 * d1[0] + f2 * d2[0], fn * n[1] + f1 * d1[1] + f2 * d2[1],
             fn * n[2] + f1 * d1[2] + f2 * d2[2])
+
+
+def _force_clip(f_sensed: list[float], f_command: float, gain: float) -> list[float]:
+    """Each ball's clip (N) on its commanded Cartesian force for the next step: a force limiter's outer
+    loop on the wrist sensor's reading ``f_sensed`` (N, this step): the command's clip ``f_command``
+    lowered by ``gain`` times the sensed excess over it, never below half of it."""
+    return [max(f_command - gain * max(f - f_command, 0.0), 0.5 * f_command) for f in f_sensed]
 
 
 class _ForceMonitor:
@@ -1472,6 +1488,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         follow_s = tg.follow.tolist()
         drift: list = [None, None]  # per ball: the object's drift from the plan when its lone hold began
         f_command = (1.0 - params.force_margin) * f_bound
+        f_clip = [f_command, f_command]  # this step's clip per ball: the force limiter's (force_feedback)
         force = _ForceMonitor(f_bound, dt, int(round(params.force_window / dt)))
         seen = _Perception(S, X_PO, params)
         servo = _YawServo(plan, sup_vertex, hull_O, com_O, params)
@@ -1553,8 +1570,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             for a in range(2):
                 fx, fy, fz = W[a, :3].tolist()
                 nF = math.sqrt(fx * fx + fy * fy + fz * fz)
-                if nF > f_command:
-                    W[a, :3] *= f_command / nF
+                if nF > f_clip[a]:
+                    W[a, :3] *= f_clip[a] / nF
                     force.clipped_steps[a] += 1
             # The posture in the null space: N (Kq e_q + Dq e_q').
             e_q, e_qd = tg.q[j] - q[cols2], tg.qd[j] - qd[cols2]
@@ -1580,7 +1597,9 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
             p.setJointMotorControlArray(body, all_arm, p.TORQUE_CONTROL, forces=tau.ravel().tolist(),
                                         physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
-            force.add(check_collisions(float(plan.t[0]) + j * dt))
+            f_sensed = check_collisions(float(plan.t[0]) + j * dt)
+            force.add(f_sensed)
+            f_clip = _force_clip(f_sensed, f_command, params.force_feedback)
             seen.record(j, obj, cid)
             states = p.getJointStates(body, movable, physicsClientId=cid)
             if j % k == 0:

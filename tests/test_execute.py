@@ -1032,6 +1032,31 @@ def test_a_ball_force_above_the_bound_fails(pivot_case):
     assert ok["within_force_bound"] and ok["max_ball_force"] <= 20.0 and ok["time_at_force_bound"] > 0.0
 
 
+@pytest.mark.slow
+def test_the_force_limiter_keeps_contact_transients_under_the_bound(pivot_case):
+    """The scene's bound lowered to 20 N, the command clipped at 19 N (``force_margin`` 0.05): without
+    the limiter's outer loop (``force_feedback`` 0) contact transients carry the sensed force past the
+    clip; with it the sensed force, raw and averaged, peaks lower."""
+    d = pivot_case["scene"].to_dict()
+    d["robot"]["max_eef_force"] = 20.0
+    scene = scene_from_dict(d, SCENE_PATH)
+    runs = [_run(pivot_case, scene=scene, params=replace(pivot_case["params"], force_margin=0.05,
+                                                         force_feedback=g)).metrics for g in (0.0, 1.0)]
+    bare, limited = runs
+    assert bare["max_ball_force_step"] > 19.0 * 1.02
+    assert limited["max_ball_force_step"] < bare["max_ball_force_step"]
+    assert limited["max_ball_force"] < bare["max_ball_force"] and limited["within_force_bound"]
+
+
+def test_force_clip_lowers_the_next_command_by_the_sensed_excess():
+    """execute._force_clip: no excess keeps the clip, an excess of e N lowers it by gain * e, never
+    below half the clip; each ball on its own reading."""
+    assert execute._force_clip([30.0, 44.5], 44.5, 1.0) == [44.5, 44.5]
+    assert execute._force_clip([46.5, 40.0], 44.5, 1.0) == pytest.approx([42.5, 44.5])
+    assert execute._force_clip([46.5, 90.0], 44.5, 2.0) == pytest.approx([40.5, 22.25])
+    assert execute._force_clip([90.0, 90.0], 44.5, 0.0) == [44.5, 44.5]
+
+
 def test_force_monitor_judges_the_averaged_force_and_counts_the_time_above():
     """A single-step spike (one solver step) stays under the bound once averaged over the window; a
     force held above the bound does not, and its time is counted."""
