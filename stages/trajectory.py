@@ -13,7 +13,9 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   planner's own IK check of the pivot (:func:`pivot_joints`), so that they end where the plan's next
   transit starts. The MPC minimises the ball forces and so leans on the table's friction up to its
   bound; it first runs with a smaller table friction (``Params.table_friction_tries``) and keeps
-  the first feasible run, which leaves physics with 20 % less friction than the scene a margin;
+  the first feasible run whose ball forces stay within the plan's ``mpc_max_force`` share of the
+  bound (the plan checked no more; the controller commands no more), which leaves physics with 20 %
+  less friction than the scene a margin;
 - **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
   PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
 - **hold**: a short pause before and after each contact change.
@@ -1104,14 +1106,32 @@ def check_tumble(env: _Env, q: dict, step: dict, X_from: np.ndarray, X_to: np.nd
     return "ok", ""
 
 
+def _pivot_forces(env, f_cap: float, args: tuple):
+    """The pivot's MPC (``stages.mpc.run_pivot_mpc``; ``args`` = contacts ``(2, 3)`` and inward normals
+    (O), table vertex ``p0`` (W), reference ``t``, ``X_ref``) with the first of ``table_friction_tries``
+    whose solution is feasible and keeps every ball force within ``f_cap`` (N, the plan's
+    ``mpc_max_force`` share of the bound: what the plan checked and the controller commands), else
+    with ``friction_safety``, the plan's own check. Returns ``(result, table friction share)``."""
+    p_c, n_in, p0, t, Xr = args
+    scene, params = env.scene, env.params
+    for fs in (*params.table_friction_tries, params.friction_safety):
+        res = mpc.run_pivot_mpc(scene.object.mass, env.inertia, env.model.com, p_c, n_in, p0, t, Xr,
+                                replace(env.mp, mu_table=fs * scene.table.friction))
+        if res.status == "ok" and (fs == params.friction_safety
+                                   or float(np.max(np.linalg.norm(res.f_eef_W, axis=2))) <= f_cap):
+            break
+    return res, fs
+
+
 def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict]:
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     env = make_env(scene, model, tables, robot, params,
                    clearance=clearance_of(plan.get("meta", {}).get("params", {})))
-    p_O, n_O, r, mp, inertia = env.p_O, env.n_O, env.r, env.mp, env.inertia
+    p_O, n_O, r, mp = env.p_O, env.n_O, env.r, env.mp
     dt = mp.dt
+    f_cap = float(plan.get("meta", {}).get("params", {}).get("mpc_max_force", 1.0)) * scene.robot.max_eef_force
     tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
              "tumbles": [], "pivot_table_friction": []}
@@ -1143,11 +1163,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com, tilt_dir=d)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            for fs in (*params.table_friction_tries, params.friction_safety):
-                res = mpc.run_pivot_mpc(scene.object.mass, inertia, model.com, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t,
-                                        Xr, replace(mp, mu_table=fs * scene.table.friction))
-                if res.status == "ok":
-                    break
+            res, fs = _pivot_forces(env, f_cap, (p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr))
             stats["pivot_table_friction"].append(fs)
             if res.status != "ok":
                 stats.update(status="mpc_infeasible", failed_primitive=k)

@@ -579,3 +579,27 @@ def test_a_ball_turned_with_the_object_does_not_roll_off_its_contact(piano_model
     assert plain > 0.03  # measured 3.8 cm, 3.5 of them up the face (z_O)
     # Only the rotation about the turning axis (x of O) is followed: no roll up the face (z_O), nor off it.
     assert abs(follow[2]) < 1e-3 and abs(follow[1]) < 1e-9
+
+
+def test_a_pivot_keeps_the_first_table_friction_whose_ball_forces_fit_the_plans_cap():
+    """trajectory._pivot_forces: the box's pivot with the first table friction share that is feasible
+    and keeps every ball force within the cap (the plan's ``mpc_max_force`` share of the bound); a
+    cap the first solution exceeds moves it on to the next share, whose forces fit."""
+    from types import SimpleNamespace
+
+    from stages import trajectory
+
+    t, X_ref, _ = mpc.pivot_reference(X_WO0, _goal(), P0_W, TILT, 0.02, DURATIONS)
+    params = trajectory.Params(mpc=mpc.Params(dt=0.02), table_friction_tries=(0.3, 0.6))
+    scene = SimpleNamespace(object=SimpleNamespace(mass=MASS, friction=0.5), table=SimpleNamespace(friction=0.5))
+    env = SimpleNamespace(scene=scene, params=params, inertia=I_COM, model=SimpleNamespace(com=np.zeros(3)),
+                          mp=mpc.Params(dt=0.02, mu_eef=0.4, mu_table=0.4))
+    args = (P_C_O, N_C_O, P0_W, t, X_ref)
+
+    def peak(res):
+        return float(np.linalg.norm(res.f_eef_W, axis=2).max())
+
+    first, share = trajectory._pivot_forces(env, 1e3, args)
+    assert first.ok and share == 0.3
+    capped, share = trajectory._pivot_forces(env, 0.99 * peak(first), args)
+    assert capped.ok and share == 0.6 and peak(capped) <= 0.99 * peak(first)
