@@ -62,8 +62,9 @@ begins: the object then lies a few mm off its plan, out of reach of the feed-for
 is held at the planning angle by a stiff position motor.
 
 Force bound: ``F_max`` is the scene's ``robot.max_eef_force`` (50 N, the arm's payload), the bound
-the planner's stability check and the MPC put on each ball (the MPC on the normal component; with
-its friction pyramid the planned force's magnitude reaches 51 N on Exp. 2). The commanded force,
+the planner's stability check and the MPC put on each ball (the MPC on the normal component; the
+plan and the pivots' trajectories keep the force's magnitude within ``mpc_max_force``, 0.9 of it,
+about the clip below). The commanded force,
 feed-forward and squeeze included, is clipped below it (``force_margin``), and lowered further at the
 next step by the excess of the ball's sensed force over that clip (``force_feedback``: the outer loop
 of a force limiter on the wrist sensor's reading, which contact transients would otherwise carry past
