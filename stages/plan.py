@@ -9,9 +9,12 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   approach along the contact normals (``stages.transit``, OMPL's RRT-Connect). In SP the left arm
   moves, then the right; in USP the arms the edge names, one at a time, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
-  flips), collisions along it, and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
-  friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
-  ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
+  flips), collisions along it, where its balls roll to on the object (``stages.rolling``: summed
+  over the pivots of one grasp, each contact must stay on its surface, else ``ball_rolls_off``; §5.1
+  checks the ball's angle to the surface for the same reason), and the MPC of §5.2
+  (``stages.mpc.run_pivot_mpc``) with the friction and force constraints; ``mpc_infeasible`` is a
+  failure like any other, and so is ``mpc_marginal`` (feasible only near the force bound or with a
+  large tracking error).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
   posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
@@ -56,6 +59,7 @@ from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
+from stages.rolling import RollLimits, rolled_off, rolling_shift
 from stages.sample import clearance_of, make_scene_collision_fn, placement_pose
 from stages.scene import Scene, load_scene
 
@@ -92,6 +96,10 @@ class Params:
     #: the pusher to its release, a catcher that lowers the object, the tumbling MPC, the catcher's
     #: transit), so that a plan the search returns is one the motion stage can execute.
     check_tumble: bool = True
+    #: Where a pivot's balls roll to on the object (``stages.rolling``), accumulated over the pivots a
+    #: grasp makes, must stay on the surfaces they were planned on (``ball_rolls_off``), their normals
+    #: within the friction cone (``friction_safety`` of the object's friction) of the planned ones.
+    roll: RollLimits = field(default_factory=RollLimits)
 
 
 @dataclass
@@ -101,13 +109,16 @@ class _State:
     q: dict  # arm -> (n,) joints
     normal: dict  # arm -> (3,) outward contact normal (W) when the ball touches, else None
     X_WO: np.ndarray
+    #: arm -> (3,) how far (m, O) its ball has rolled on the object since it took its contact
+    roll: dict = field(default_factory=lambda: {"left": np.zeros(3), "right": np.zeros(3)})
 
     def key(self) -> bytes:
         """The state's exact bytes: a step checked from an equal state gives an equal result."""
         parts = [self.X_WO.tobytes()]
         for arm in ("left", "right"):
             n = self.normal[arm]
-            parts += [np.asarray(self.q[arm]).tobytes(), b"-" if n is None else np.asarray(n).tobytes()]
+            parts += [np.asarray(self.q[arm]).tobytes(), b"-" if n is None else np.asarray(n).tobytes(),
+                      self.roll[arm].tobytes()]
         return b"|".join(parts)
 
 
@@ -234,7 +245,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
             step["arms"] = []
             return True, "ok", step, state
         arms = ["left", "right"] if nodes["kind"][u] == "free" else movers(ctx.edges, data["edge_id"], u)
-        new = _State(dict(state.q), dict(state.normal), state.X_WO)
+        new = _State(dict(state.q), dict(state.normal), state.X_WO, dict(state.roll))
         paths = {}
         if nodes["kind"][v] == "hold":  # from a catch: the pusher alone, onto the hold's contact
             (arm_h, c_h, q_h), (arm_c, c_c, _) = ctx.catch[v], ctx.catch[u]
@@ -252,6 +263,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
             paths[arm] = res.path
             new.q[arm] = res.path[-1]
             new.normal[arm] = n_goal
+            new.roll[arm] = np.zeros(3)
         step.update(arms=arms, grasp_to=gv, transit={a: p.tolist() for a, p in paths.items()}, contacts=contacts)
         return True, "ok", step, new
     if prim == "pivot":
@@ -265,9 +277,19 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                       ctx.scene.robot.ball_radius, GraphParams(), batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
+        roll = {}
+        for k, arm in enumerate(("left", "right")):
+            shift = state.roll[arm] + rolling_shift(ctx.robot, arm, q[:, 0, k], Xr[sub], n_c[k],
+                                                    ctx.scene.robot.ball_radius)
+            off = rolled_off(ctx.tables["mesh"], p_c[k], n_c[k], ctx.scene.robot.ball_radius, shift,
+                             params.friction_safety * ctx.scene.object.friction, params.roll)
+            if off >= 0:
+                far = 1000 * np.linalg.norm(shift[off])
+                return False, "ball_rolls_off", {**step, "detail": f"{arm} ball, {far:.0f} mm from its contact"}, state
+            roll[arm] = shift[-1]
         # The MPC check (``_MPCChecks``) depends on the arc alone; the walk asks for it.
         new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
-                     {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb)
+                     {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb, roll)
         step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
                     contacts={"left": cl, "right": cr})
         return True, "ok", step, new

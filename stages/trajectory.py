@@ -101,6 +101,7 @@ from stages.graph import push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import load_robot
+from stages.rolling import rolling_shift
 from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import load_scene
 
@@ -649,23 +650,6 @@ class _Env:
             self._collide = make_scene_collision_fn(self.scene, self.robot, self.mesh,
                                                     clearance=self.clearance)
         return self._collide
-
-
-def rolling_shift(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, r: float) -> np.ndarray:
-    """Where a ball that keeps the orientation of its planned joints rolls to on the object, ``(T, 3)`` (m, O).
-
-    Without slip, its centre moves relative to the object by ``(omega_o - omega_ball) x r n_in`` (the
-    controller of ``stages.execute`` shifts its target the same way), accumulated over the rows of
-    ``q (T, n)`` and ``X_WO (T, 4, 4)`` from the first; ``n_O`` is the contact's outward normal (O).
-    """
-    R_b = robot.eef_rotation(arm, q)
-    R_o = X_WO[:, :3, :3]
-    d_o = Rotation.from_matrix(R_o[1:] @ np.swapaxes(R_o[:-1], 1, 2)).as_rotvec()
-    d_b = Rotation.from_matrix(R_b[1:] @ np.swapaxes(R_b[:-1], 1, 2)).as_rotvec()
-    n_in = -se3.rotate_vectors(X_WO[:-1], n_O)
-    step_W = np.cross(d_o - d_b, r * n_in)
-    step_O = np.einsum("tji,tj->ti", R_o[:-1], step_W)
-    return np.concatenate([np.zeros((1, 3)), np.cumsum(step_O, axis=0)])
 
 
 def _face_margin(model, p_O: np.ndarray, n_O: np.ndarray, x_O: np.ndarray) -> float:

@@ -388,3 +388,26 @@ def test_a_tumble_the_motion_stage_cannot_do_is_backtracked_in_the_search(builds
                  plan.Params())
     assert asked and p["status"] == "infeasible"
     assert any(e["primitive"] == "tumble" and e["reason"] == "no_catcher" for e in p["log"])
+
+
+def test_a_pivot_whose_ball_has_rolled_to_its_faces_edge_is_refused(builds):
+    """The plan's walk carries how far each ball has rolled on the object (``stages.rolling``) over the
+    pivots of one grasp: Exp. 2's first pivot passes from a fresh grasp, and the same pivot from a
+    state whose left ball has already rolled 20 cm along its face is ``ball_rolls_off``."""
+    name = "exp2_rotate"
+    b = builds.build(name)
+    p = builds.plan(name)
+    ctx = plan._Context(load_scene(builds.scene(name)), builds.analysis, b / "sample", b / "graph")
+    step = next(s for s in p["steps"] if s["primitive"] == "pivot")
+    u, v, g = step["node_from"], step["node_to"], step["grasp"]
+    X = ctx.X_WO[step["pose_from"]]
+    state = plan._State({a: ctx.q_grasp[a][g] for a in ("left", "right")},
+                        {a: se3.rotate_vectors(X, ctx.n_O[ctx.contact(g, a)]) for a in ("left", "right")}, X)
+    data = {"primitive": "pivot", "edge_id": step["edge_id"]}
+    ok, why, _, new = plan._check_step(ctx, plan.Params(), state, u, v, data)
+    assert ok and why == "ok" and np.linalg.norm(new.roll["left"]) > 0
+    n = ctx.n_O[ctx.contact(g, "left")]
+    along = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    state.roll["left"] = 0.2 * along / np.linalg.norm(along)
+    ok, why, step_out, _ = plan._check_step(ctx, plan.Params(), state, u, v, data)
+    assert not ok and why == "ball_rolls_off" and "left ball" in step_out["detail"]
