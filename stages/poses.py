@@ -88,6 +88,9 @@ class Params:
     #: the start's lattice alone.
     goal_tree_share: float = 0.25
     tree_joins: int = 12
+    #: Each closed-form join is also made avoiding each corner it used, up to this many corners
+    #: (:func:`_connect`): which corners a grasp holds is known only after the lattice.
+    join_alternatives: int = 3
     tree_candidates: int = 80
     yaw_weight: float = 0.2
     #: After its ``max_poses`` breadth first and the goal's joins, the start's lattice grows on from its
@@ -585,13 +588,29 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
 
 def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params: Params) -> int:
     """Pivot from kept pose ``i`` to ``X_to`` on placement ``g`` by up to three closed-form pivots
-    (``stages.connect``), adding the poses on the way; returns the last kept pose reached (``i`` when
-    none, or when a pivot is too small to be kept apart from its parent)."""
+    (``stages.connect``), adding the poses on the way; then by the best sequence that avoids each
+    corner the first one used, in turn, up to ``join_alternatives`` more (which corners a grasp
+    holds is known only later, so one corner no reachable grasp holds would sink every join through
+    it). Returns the last kept pose the first sequence reached (``i`` when none, or when a pivot is
+    too small to be kept apart from its parent)."""
     ids = corners[g]
+    first = _connect_via(model, rows, add, i, X_to, g, ids, params)
+    if first is None:
+        return i
+    used, end = first
+    for c in used[: params.join_alternatives]:
+        _connect_via(model, rows, add, i, X_to, g, ids[ids != c], params)
+    return end
+
+
+def _connect_via(model, rows, add, i: int, X_to: np.ndarray, g: int, ids: np.ndarray, params: Params):
+    """:func:`_connect` over the corners ``ids`` only: ``(corners used, last kept pose)`` or None."""
+    if len(ids) == 0:
+        return None
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
         max_angle=params.goal_max_angle, face_tilt=params.face_tilt))
     if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
-        return i
+        return None
     prev = i
     for step in range(len(conn.angles)):  # at most three pivots
         X = np.asarray(X_to, dtype=float) if step == len(conn.angles) - 1 else conn.poses[step + 1]
@@ -599,7 +618,7 @@ def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params
         if rows[j]["status"] != "ok":
             break
         prev = j
-    return prev
+    return list(dict.fromkeys(int(ids[c]) for c in conn.corners)), prev
 
 
 def table_support(model: ObjectModel, X: np.ndarray, g: int, half: np.ndarray, tol: float = SUPPORT_TOL) -> np.ndarray:
