@@ -435,3 +435,31 @@ def test_a_corner_with_a_rounded_rim_around_it_is_no_pivot_corner():
     assert len(poses.pivot_corners(model, 0.03, np.radians(8))[g]) == 3  # the other three corners
     with pytest.raises(poses.InputError):
         poses.tilt_direction(model, model.X_TO[g], v, np.radians(8))
+
+
+def test_a_join_is_also_made_around_each_corner_it_pivots_about():
+    """The goal 0.12 m away turned 40°, the start's lattice one pose: its closed-form join pivots about
+    three corners; with ``join_alternatives`` the goal is also joined by the best sequence avoiding
+    each of them where one exists (here around the first), so that one corner no reachable grasp
+    holds does not cut it off; without, taking that corner's links out does."""
+    import networkx as nx
+
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.12, 0.05), yaw=np.radians(40))
+
+    def without(ps, v):  # start and goal connected by links not about vertex v
+        G = nx.Graph()
+        G.add_nodes_from(range(len(ps.status)))
+        G.add_edges_from(tuple(e) for e, lv in zip(ps.links, ps.link_vertex, strict=True) if lv != v)
+        return nx.has_path(G, 0, ps.goal_id)
+
+    base = dict(max_poses=1, goal_tree_share=0, goal_reach_share=0)
+    one = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(**base, join_alternatives=0), goal=(Xg, g))
+    alt = poses.sample_poses(model, X0, g, (2.0, 2.0), (), poses.Params(**base, join_alternatives=3), goal=(Xg, g))
+    assert one.goal_id >= 0 and alt.goal_id >= 0
+    first = int(one.link_vertex[np.flatnonzero(one.links[:, 0] == 0)[0]])
+    assert not without(one, first) and without(alt, first)
+    assert len(alt.links) > len(one.links)
+    for a, b in alt.links:  # every alternative join is kept poses linked by exact pivots
+        assert alt.status[a] == "ok" and alt.status[b] == "ok"
