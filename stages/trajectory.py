@@ -1090,13 +1090,13 @@ def check_tumble(env: _Env, q: dict, step: dict, X_from: np.ndarray, X_to: np.nd
     return "ok", ""
 
 
-def _pivot_forces(env, f_cap: float, args: tuple):
-    """The pivot's MPC (``stages.mpc.run_pivot_mpc``; ``args`` = contacts ``(2, 3)`` and inward normals
-    (O), table vertex ``p0`` (W), reference ``t``, ``X_ref``) with the first of ``table_friction_tries``
+def _pivot_forces(env, f_cap: float, p_c: np.ndarray, n_in: np.ndarray, p0: np.ndarray, t: np.ndarray,
+                  Xr: np.ndarray):
+    """The pivot's MPC (``stages.mpc.run_pivot_mpc``: contacts ``p_c (2, 3)`` and inward normals ``n_in``
+    (O), table vertex ``p0`` (W), reference times ``t`` and poses ``Xr``) with the first of ``table_friction_tries``
     whose solution is feasible and keeps every ball force within ``f_cap`` (N, the plan's
     ``mpc_max_force`` share of the bound: what the plan checked and the controller commands), else
     with ``friction_safety``, the plan's own check. Returns ``(result, table friction share)``."""
-    p_c, n_in, p0, t, Xr = args
     scene, params = env.scene, env.params
     for fs in (*params.table_friction_tries, params.friction_safety):
         res = mpc.run_pivot_mpc(scene.object.mass, env.inertia, env.model.com, p_c, n_in, p0, t, Xr,
@@ -1147,7 +1147,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com, tilt_dir=d)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            res, fs = _pivot_forces(env, f_cap, (p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr))
+            res, fs = _pivot_forces(env, f_cap, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr)
             stats["pivot_table_friction"].append(fs)
             if res.status != "ok":
                 stats.update(status="mpc_infeasible", failed_primitive=k)

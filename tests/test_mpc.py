@@ -599,7 +599,7 @@ def test_a_pivot_keeps_the_first_table_friction_whose_ball_forces_fit_the_plans_
     def peak(res):
         return float(np.linalg.norm(res.f_eef_W, axis=2).max())
 
-    first, share = trajectory._pivot_forces(env, 1e3, args)
+    first, share = trajectory._pivot_forces(env, 1e3, *args)
     assert first.ok and share == 0.3
-    capped, share = trajectory._pivot_forces(env, 0.99 * peak(first), args)
+    capped, share = trajectory._pivot_forces(env, 0.99 * peak(first), *args)
     assert capped.ok and share == 0.6 and peak(capped) <= 0.99 * peak(first)
