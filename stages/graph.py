@@ -215,6 +215,84 @@ def eef_normal_angle_change(robot, q: np.ndarray, X_traj: np.ndarray, n_O: np.nd
     return out
 
 
+class PivotChecks(NamedTuple):
+    """What :func:`check_pivot_edges` checks pivot edges with: the scene, object model and analysis
+    tables, robot and collision function, poses ``X_WO (N, 4, 4)`` (W, m), the pivot links' poses
+    ``link_poses (L, 2)`` and vertices ``link_vertex (L,)``, and per grasp its ``pivot_vertices`` as
+    sets, contact points and outward normals ``p_g, n_g (G, 2, 3)`` (O) and joints ``q_g (G, 2, n)``."""
+
+    scene: Scene
+    model: poses.ObjectModel
+    tables: dict
+    robot: object
+    collide: object
+    X_WO: np.ndarray
+    link_poses: np.ndarray
+    link_vertex: np.ndarray
+    pivot_sets: list
+    p_g: np.ndarray
+    n_g: np.ndarray
+    q_g: np.ndarray
+
+
+def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.ndarray:
+    """Status of pivot edge candidates ``cand (n, 3)`` (grasp at a, grasp at b, link), ``(n,)``:
+    ``unstable`` when either grasp does not list the link's vertex among its ``pivot_vertices``,
+    ``not_a_pivot``, then the arms along the tilt -> rotate -> lower reference
+    (:func:`check_arm_motion`, §5.1's ``eef_normal_angle``), then equilibrium on the vertex at the
+    largest tilt with both balls (the stability LP, eq. 1-4, ``friction_safety`` and ``force_safety``)."""
+    status = np.full(len(cand), "ok", dtype=object)
+    scene, model, robot, collide, X_WO = pc.scene, pc.model, pc.robot, pc.collide, pc.X_WO
+    p_g, n_g, q_g, r = pc.p_g, pc.n_g, pc.q_g, scene.robot.ball_radius
+    v = pc.link_vertex[cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
+    piv_a = pc.pivot_sets
+    for i, (ga, gb, _), vi in zip(range(len(cand)), cand.tolist(), v.tolist(), strict=True):  # set lookups
+        if vi not in piv_a[ga] or vi not in piv_a[gb]:
+            status[i] = "unstable"
+    live = np.flatnonzero(status == "ok")
+    if len(live):
+        by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
+        for li in np.unique(cand[live, 2]):
+            Xa, Xb, vtx = X_WO[pc.link_poses[li, 0]], X_WO[pc.link_poses[li, 1]], int(pc.link_vertex[li])
+            p0 = se3.transform_points(Xa, model.vertices[vtx])
+            try:
+                d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt)
+                _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
+                                                        params.check_durations, p_com_O=model.com, tilt_dir=d)
+            except InputError:  # not an exact rotation about that vertex, or no tilt onto it: no pivot edge
+                pass
+        status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
+        live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
+        trajs = [by_link[cand[i, 2]] for i in live]
+    if len(live):
+        T = min(len(x) for x in trajs)
+        X_traj = np.stack([x[:T] for x in trajs])
+        ok, why = np.zeros(len(live), bool), np.empty(len(live), dtype=object)
+        for s in range(0, len(live), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
+            c = slice(s, s + params.pivot_chunk)
+            g = cand[live[c], 0]
+            ok[c], why[c], q_c = check_arm_motion(robot, collide, X_traj[c], p_g[g], n_g[g], q_g[g], r, params)
+            turned = ok[c] & (eef_normal_angle_change(robot, q_c, X_traj[c], n_g[g]) > params.max_eef_normal_change)
+            why[c][turned], ok[c][turned] = "eef_normal_angle", False
+        status[live] = why
+        # Equilibrium on the vertex at the largest tilt (middle of the path) with both balls.
+        live2 = live[ok]
+        if len(live2):
+            Xm = X_traj[ok][:, T // 2]
+            ga = cand[live2, 0]
+            pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], p_g[ga]) + Xm[:, None, :3, 3]
+            nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], n_g[ga])
+            p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
+            res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
+                                     pts, nrm, None, float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2),
+                                     stability.Params(mu_eef=params.friction_safety * scene.object.friction,
+                                                      mu_table=params.friction_safety * scene.table.friction,
+                                                      f_max=params.force_safety * scene.robot.max_eef_force),
+                                     compute_margin=False)
+            status[live2[~res.stable]] = "unstable"
+    return status
+
+
 def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph:
     """Nodes and edges with their checks (module docstring)."""
     t0 = time.perf_counter()
@@ -269,53 +347,11 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             if key in gb:
                 cand.append((gi, gb[key], li))
     cand = np.array(cand, dtype=np.int64).reshape(-1, 3)
-    status = np.full(len(cand), "ok", dtype=object)
     v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
-    piv_a = [set(x.tolist()) for x in grasps["pivot_vertices"]]
-    for i, (ga, gb, _), vi in zip(range(len(cand)), cand.tolist(), v.tolist(), strict=True):  # set lookups
-        if vi not in piv_a[ga] or vi not in piv_a[gb]:
-            status[i] = "unstable"
-    live = np.flatnonzero(status == "ok")
-    if len(live):
-        by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
-        for li in np.unique(cand[live, 2]):
-            Xa, Xb, vtx = X_WO[links["pose_a"][li]], X_WO[links["pose_b"][li]], int(links["vertex"][li])
-            p0 = se3.transform_points(Xa, model.vertices[vtx])
-            try:
-                d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt)
-                _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
-                                                        params.check_durations, p_com_O=model.com, tilt_dir=d)
-            except InputError:  # not an exact rotation about that vertex, or no tilt onto it: no pivot edge
-                pass
-        status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
-        live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
-        trajs = [by_link[cand[i, 2]] for i in live]
-    if len(live):
-        T = min(len(x) for x in trajs)
-        X_traj = np.stack([x[:T] for x in trajs])
-        ok, why = np.zeros(len(live), bool), np.empty(len(live), dtype=object)
-        for s in range(0, len(live), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
-            c = slice(s, s + params.pivot_chunk)
-            g = cand[live[c], 0]
-            ok[c], why[c], q_c = check_arm_motion(robot, collide, X_traj[c], p_g[g], n_g[g], q_g[g], r, params)
-            turned = ok[c] & (eef_normal_angle_change(robot, q_c, X_traj[c], n_g[g]) > params.max_eef_normal_change)
-            why[c][turned], ok[c][turned] = "eef_normal_angle", False
-        status[live] = why
-        # Equilibrium on the vertex at the largest tilt (middle of the path) with both balls.
-        live2 = live[ok]
-        if len(live2):
-            Xm = X_traj[ok][:, T // 2]
-            ga = cand[live2, 0]
-            pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], p_g[ga]) + Xm[:, None, :3, 3]
-            nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], n_g[ga])
-            p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
-            res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
-                                     pts, nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                     stability.Params(mu_eef=params.friction_safety * scene.object.friction,
-                                                      mu_table=params.friction_safety * scene.table.friction,
-                                                      f_max=params.force_safety * scene.robot.max_eef_force),
-                                     compute_margin=False)
-            status[live2[~res.stable]] = "unstable"
+    checks = PivotChecks(scene, model, tables, robot, collide, X_WO,
+                         np.stack([links["pose_a"], links["pose_b"]], axis=1), links["vertex"],
+                         [set(x.tolist()) for x in grasps["pivot_vertices"]], p_g, n_g, q_g)
+    status = check_pivot_edges(checks, cand, params)
     edges += [(ga, gb, "pivot", w.pivot, str(st), vi, -1, -1, "both")
               for (ga, gb, _), st, vi in zip(cand.tolist(), status, v.tolist(), strict=True)]
     t2 = time.perf_counter()
