@@ -367,7 +367,7 @@ def on_table_tolerance(corners_O: np.ndarray, params: Params = Params()) -> floa
 
 
 def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
-                  params: Params = Params()) -> Connection:
+                  params: Params = Params(), face_O: np.ndarray | None = None) -> Connection:
     """Shortest pivot sequence between two world poses of the object on the same placement.
 
     Parameters
@@ -379,6 +379,9 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         Support corners ``p_OC`` in the object frame (m); at ``X_a`` they must lie on the table (z = 0)
         within ``tol_xy + tan(face_tilt) * spread`` (:class:`Params`): a hull face's own flatness.
     params : Params
+    face_O : (m, 3) float, optional
+        The support face's vertices (m, O), whose spread sets that tolerance when ``corners_O`` are
+        some of its corners only (default ``corners_O``).
 
     Returns
     -------
@@ -394,7 +397,7 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         raise InputError(f"connect_poses: corners_O must be (k, 3), got shape {corners_O.shape}")
     p_WC = se3.transform_points(X_a, corners_O)  # (k, 3)
     off = np.abs(p_WC[:, 2])
-    allowed = on_table_tolerance(corners_O, params)
+    allowed = on_table_tolerance(corners_O if face_O is None else np.asarray(face_O, dtype=float), params)
     if np.any(off > allowed):
         raise InputError(f"connect_poses: corner {int(np.argmax(off))} is {off.max():.3g} m off the table "
                          f"(z = 0) at X_a, more than the face's flatness {allowed:.3g} m; pivot corners must rest "

@@ -295,3 +295,15 @@ def test_corners_as_uneven_as_a_merged_hull_face_connect_and_far_off_ones_are_re
     assert connect.connect_poses(X_a, X_a, small, P).ok
     with pytest.raises(InputError, match="off the table"):
         connect.connect_poses(X_a, X_a, small + one_mm, P)
+
+
+def test_some_corners_of_a_face_get_the_whole_faces_flatness():
+    """A join about a subset of a face's corners (those a grasp holds) is judged against the face's
+    flatness, not the subset's: one corner alone has no spread, and 0.1 mm off would be refused."""
+    X_a, corners_O = lying_box()
+    X_b = pivot_3d(X_a, corners_O, [0], [0.3])
+    one = corners_O[:1] + np.array([[0, 1e-4, 0]])  # y_O is up
+    with pytest.raises(InputError, match="off the table"):
+        connect.connect_poses(X_a, X_b, one, P)
+    c = connect.connect_poses(X_a, X_b, one, P, face_O=corners_O)
+    assert c.ok and c.n_pivots == 1
