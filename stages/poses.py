@@ -39,7 +39,8 @@ length from the start (CoM in plan view plus ``yaw_weight`` m per rad of heading
 steps) plus ``goal_bias`` times the pose's distance to the goal by the same measure (to the goal's
 CoM alone on another placement), and is joined to the goal and its lattice again. It reaches out to a goal
 that the breadth-first lattice never nears, and leaves that lattice and its joins (whose short
-pivots make short plans) as they were.
+pivots make short plans) as they were. Once the grasps are known, :func:`extend_lattice` grows it on
+from the poses the start reaches by pivots a grasp holds, about those corners only (``stages.sample``).
 
 Pivot corners: the support polygon of a curved foot has many hull vertices on its rim; vertices of a
 placement's support polygon closer than ``corner_cluster`` form one corner, represented by the vertex
@@ -294,7 +295,13 @@ def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float):
 
 def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: int, table_size, obstacles,
                  params: Params, goal: tuple[np.ndarray, int] | None = None) -> PoseSet:
-    """Pose lattice from the start (see the module docstring).
+    """Pose lattice from the start (see the module docstring): :func:`build_lattice`'s poses."""
+    return build_lattice(model, X_WO_start, start_placement, table_size, obstacles, params, goal).pose_set()
+
+
+def build_lattice(model: ObjectModel, X_WO_start: np.ndarray, start_placement: int, table_size, obstacles,
+                  params: Params, goal: tuple[np.ndarray, int] | None = None) -> _Lattice:
+    """The pose lattice from the start (see the module docstring), kept growable (:func:`extend_lattice`).
 
     ``obstacles`` is a sequence of ``stages.scene.ObstacleGeometry``; ``table_size`` (sx, sy) m;
     ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
@@ -306,8 +313,8 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
     popped = lat.grow([first], params.max_poses)  # breadth first, at most max_poses poses
     n_tree = len(rows)
     if goal is None:
-        return _to_pose_set(rows, lat.links)
-    goal_id = _insert_goal(model, corners, rows, add, *goal, params)
+        return lat
+    goal_id = lat.goal_id = _insert_goal(model, corners, rows, add, *goal, params)
     n_start = len(rows)
 
     def ok(lo: int, hi: int) -> list[int]:  # the kept poses of rows lo..hi - 1 but the goal
@@ -326,7 +333,32 @@ def sample_poses(model: ObjectModel, X_WO_start: np.ndarray, start_placement: in
         n_grown = len(rows)
         _join_goal(model, corners, rows, add, goal_id, range(n_reach, n_grown), params)
         _join_trees(model, corners, rows, add, ok(n_reach, n_grown), [goal_id, *ok(n_start, n_reach)], params)
-    return _to_pose_set(rows, lat.links, goal_id)
+    return lat
+
+
+def extend_lattice(lat: _Lattice, start_side: list[int], goal_side: list[int], usable: dict[int, np.ndarray],
+                   budget: int) -> None:
+    """Grasp-aware reach (our addition to §5.1, §5.3): grow the lattice from the poses the start reaches
+    by pivots some grasp can make (``start_side``, row ids) toward those the goal reaches
+    (``goal_side``, the goal first), pivoting each pose whose grasps are known only about the corners
+    they hold (``usable``: row id -> hull vertex ids; a pose not in it may pivot about any corner).
+
+    First closed-form joins (:func:`_join_trees`) between the two sides, about corners both ends hold;
+    then weighted A* (``goal_bias``) from the start's side on the start's and the goal's placements by
+    ``budget`` kept poses, whose new poses are joined to the goal's side in turn. Which grasps a pose
+    has is known only after the grasp refinement, so the sample stage alternates the two
+    (``stages.sample``). Adds rows and links to ``lat``."""
+    model, rows, add, params = lat.model, lat.rows, lat.add, lat.params
+    start_side, goal_side = [i for i in start_side if rows[i]["status"] == "ok"], list(goal_side)
+    if not start_side or not goal_side:
+        return
+    _join_trees(model, lat.corners, rows, add, start_side, goal_side, params, usable)
+    n_grown = len(rows)
+    only = {rows[start_side[0]]["g"], rows[goal_side[0]]["g"]}
+    lat.grow(start_side, budget, toward=np.array([rows[i]["key"] for i in goal_side], dtype=float),
+             bias=params.goal_bias, cost=_tree_costs(rows, params), only=only, usable=usable)
+    grown = [i for i in range(n_grown, len(rows)) if rows[i]["status"] == "ok"]
+    _join_trees(model, lat.corners, rows, add, grown, goal_side, params, usable)
 
 
 class _Lattice:
@@ -344,6 +376,18 @@ class _Lattice:
         self.links: list[tuple] = []
         self.index: dict[tuple, list[int]] = {}
         self.share: dict[int, float] = {}  # expansions per turn of the placements (module docstring)
+        self.goal_id = -1
+
+    def pose_set(self) -> PoseSet:
+        """The lattice's poses and links so far (row id = pose id)."""
+        return _to_pose_set(self.rows, self.links, self.goal_id)
+
+    def corners_at(self, i: int, usable: dict[int, np.ndarray] | None) -> list[np.ndarray]:
+        """The pivot corners per placement for row ``i``: those its grasps hold where ``usable`` knows them."""
+        if usable is None or i not in usable:
+            return self.corners
+        g = self.rows[i]["g"]
+        return [*self.corners[:g], np.intersect1d(self.corners[g], usable[i]), *self.corners[g + 1:]]
 
     def key_of(self, X: np.ndarray, g: int) -> tuple[int, float, float, float]:
         """(placement, CoM x, CoM y, yaw) of the object at ``X`` on placement ``g`` (m, rad, W)."""
@@ -395,13 +439,14 @@ class _Lattice:
         return near if bias < 0 else cost[j] + bias * near
 
     def grow(self, roots: list[int], budget: int, toward: np.ndarray | None = None, bias: float = -1.0,
-             cost: dict | None = None, only: set | None = None) -> set:
+             cost: dict | None = None, only: set | None = None, usable: dict[int, np.ndarray] | None = None) -> set:
         """Expand from ``roots`` until ``budget`` new kept poses (module docstring: placements take
         turns): breadth first; nearest first to the lattice whose keys are ``toward`` (``_nearness``,
         greedy, ``bias`` < 0); or weighted A* toward it, ``bias`` >= 0: the path's length from the start
         (``cost`` of the roots, :func:`_step_cost` summed on) plus ``bias`` times the nearness. The
         roots count in the budget unless ``cost`` is given (they are already in the lattice); with
-        ``only``, poses on other placements are kept but not expanded. Returns the rows expanded."""
+        ``only``, poses on other placements are kept but not expanded; with ``usable``, a pose it knows pivots
+        only about its corners there (:meth:`corners_at`). Returns the rows expanded."""
         rows, params = self.rows, self.params
         queues: dict[int, list] = {}  # per placement, a heap of (priority, row)
         expanded: dict[int, int] = {}
@@ -426,7 +471,7 @@ class _Lattice:
             i = heapq.heappop(queues[g])[1]
             expanded[g] += 1
             popped.add(i)
-            for child in _successors(self.model, self.corners, rows[i]["X"], g, self.half, params):
+            for child in _successors(self.model, self.corners_at(i, usable), rows[i]["X"], g, self.half, params):
                 if n_ok >= budget:
                     break
                 j, new = self.add(child[0], child[1], i, *child[2:])
@@ -558,7 +603,8 @@ def _step_cost(a: tuple, b: tuple, params: Params) -> float:
     return float(np.hypot(a[1] - b[1], a[2] - b[2]) + params.yaw_weight * dyaw)
 
 
-def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: Params) -> int:
+def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: Params,
+                usable: dict[int, np.ndarray] | None = None) -> int:
     """Join kept poses ``b`` (the goal and the lattice grown from it) to kept poses ``a`` (the start's
     lattice, or the part of it grown toward the goal) by up to three pivots (``stages.connect``)
     between the nearest pairs of poses on one placement, nearest first (CoM distance plus
@@ -567,7 +613,8 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
 
     The start's lattice reaches the goal only when its few closed-form joins find grasps at every pose
     they pass; a lattice grown from the goal as well gives the search many more places to meet (§5.3's
-    graph search then picks among them, with the motion checks deciding).
+    graph search then picks among them, with the motion checks deciding). With ``usable`` (row id -> hull
+    vertex ids its grasps hold), a join pivots only about the corners both its ends hold, where known.
     """
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     if not len(a) or not len(b):
@@ -582,7 +629,14 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
         i, j = a[flat // len(b)], b[flat % len(b)]
         if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
             break
-        joined += _connect(model, corners, rows, add, int(i), rows[j]["X"], rows[j]["g"], params) == j
+        cs = corners
+        if usable is not None:
+            g = rows[j]["g"]
+            ids = corners[g]
+            for k in (int(i), int(j)):
+                ids = np.intersect1d(ids, usable[k]) if k in usable else ids
+            cs = [*corners[:g], ids, *corners[g + 1:]]
+        joined += _connect(model, cs, rows, add, int(i), rows[j]["X"], rows[j]["g"], params) == j
     return joined
 
 
@@ -608,7 +662,8 @@ def _connect_via(model, rows, add, i: int, X_to: np.ndarray, g: int, ids: np.nda
     if len(ids) == 0:
         return None
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
-        max_angle=params.goal_max_angle, face_tilt=params.face_tilt))
+        max_angle=params.goal_max_angle, face_tilt=params.face_tilt),
+        face_O=model.vertices[np.asarray(model.support[g], dtype=np.int64)])
     if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
         return None
     prev = i

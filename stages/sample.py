@@ -46,14 +46,22 @@ Grasp refinement, cheapest test first, all batched over the (pose, pair) candida
    Every pose of a placement is its resting pose turned about the vertical and shifted, and the
    stability LP is invariant under that motion, so the pivot tests are solved once per (placement,
    pair, corner) and shared by all poses of the placement.
+
+Grasp-aware reach (``Params.reach_rounds``, our addition): the lattice is laid out before any grasp
+is known. When the start does not reach the goal along links whose grasps pass the graph stage's
+checks (LazySP over the lattice, :func:`lazy_reach`), it grows on from the poses the start does reach,
+pivoting them only about the corners their grasps hold, and the new poses' grasps are refined; the
+artifacts hold every round's poses and grasps, and ``sample.json`` the rounds grown.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import networkx as nx
 import numpy as np
 
 from stages import artifacts, poses, provenance, se3, stability, stagelog
@@ -113,6 +121,18 @@ class Params:
     #: of the ball force bound: ``graph.Params.friction_safety`` and ``force_safety``, the graph's test.
     pivot_friction_safety: float = 0.8
     pivot_force_safety: float = 0.9
+    #: Grasp-aware reach (our addition to §5.1): while the goal is not reached from the start by links
+    #: whose grasps pass the graph stage's checks (:func:`lazy_reach`), the lattice grows on from the
+    #: poses the start reaches toward those the goal reaches (``poses.extend_lattice``) by
+    #: ``reach_share`` of ``max_poses`` kept poses, and the new poses get their grasps, up to
+    #: ``reach_rounds`` times. The lattice is laid out before any grasp is known, so it may reach the
+    #: goal only through corners no reachable grasp holds (a short T-shaped block: 46 % of its pivot
+    #: links); a lattice that reaches it with grasps is left as it is.
+    reach_rounds: int = 3
+    reach_share: float = 0.25
+    #: LazySP walks per round before the goal counts as not reached (each checks the pivots of one
+    #: shortest lattice path as the graph stage will).
+    reach_walks: int = 30
     #: Worker threads for IK, collision checks and stability LPs (numpy releases the GIL in its
     #: kernels); every candidate's result is the same for any number. On the project's 2-core VM two
     #: threads made the collision checks ~8 % faster but IK and the stability LPs 15-20 % slower
@@ -169,8 +189,10 @@ def clearance_of(params: dict) -> tuple[float, float]:
 
 
 def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: poses.PoseSet, robot, collide,
-                  params: Params, rng: np.random.Generator) -> tuple[dict, dict, dict]:
-    """Grasp refinement (see the module docstring) over every kept pose × contact pair.
+                  params: Params, rng: np.random.Generator,
+                  pose_ids: np.ndarray | None = None) -> tuple[dict, dict, dict]:
+    """Grasp refinement (see the module docstring) over every kept pose (of ``pose_ids`` when given) ×
+    contact pair.
 
     Returns ``(grasps, rejects, timings)`` column dicts.
     """
@@ -181,6 +203,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     n_O = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
     r = scene.robot.ball_radius
     kept = np.flatnonzero(ps.status == "ok")
+    if pose_ids is not None:
+        kept = np.intersect1d(kept, pose_ids)
     P, K = len(kept), len(pairs)
     pose_idx = np.repeat(kept, K)
     pair_idx = np.tile(np.arange(K), P)
@@ -294,6 +318,89 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
         "reason": np.array([str(x) for x in reason[bad]], dtype=str),
     }
     return grasps, rejects, timings
+
+
+def link_candidates(ps: poses.PoseSet, grasps: dict, tumbles: bool) -> dict[int, list[tuple[int, int]]]:
+    """Per link a grasp could make, its candidates as the graph stage forms them: for a pivot link the
+    grasp pairs ``(grasp at a, grasp at b)`` with one contact on each ball at both poses and the link's
+    vertex among both grasps' ``pivot_vertices`` (its first test, §5.2.1); with ``tumbles``, a tumble
+    link out of an SP pose that has grasps, ``[(-1, -1)]`` (its pusher is found by the graph stage; a
+    goal on the start's placement is reached by pivots alone). Links without any are left out."""
+    key = {}
+    for gi, (p, cl, cr) in enumerate(zip(grasps["pose_id"].tolist(), grasps["contact_left"].tolist(),
+                                         grasps["contact_right"].tolist(), strict=True)):
+        key.setdefault(p, {})[(cl, cr)] = gi
+    piv = [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]]
+    out = {}
+    for li, ((a, b), prim, v) in enumerate(zip(ps.links.tolist(), ps.link_primitive.tolist(),
+                                                ps.link_vertex.tolist(), strict=True)):
+        if prim == "tumble":
+            if tumbles and a in key and ps.support[a] == "SP":
+                out[li] = [(-1, -1)]
+            continue
+        ga, gb = key.get(a, {}), key.get(b, {})
+        found = [(i, gb[k]) for k, i in ga.items() if k in gb and v in piv[i] and v in piv[gb[k]]]
+        if found:
+            out[li] = found
+    return out
+
+
+def held_corners(grasps: dict) -> dict[int, np.ndarray]:
+    """Per pose with grasps, the hull vertex ids some grasp there can pivot about (``pivot_vertices``)."""
+    by_pose: dict[int, list] = {}
+    for p, vs in zip(grasps["pose_id"].tolist(), grasps["pivot_vertices"], strict=True):
+        by_pose.setdefault(p, []).extend(np.asarray(vs).tolist())
+    return {p: np.unique(np.array(v, dtype=np.int64)) for p, v in by_pose.items()}
+
+
+def reach_graph(ps: poses.PoseSet, cands: dict) -> nx.Graph:
+    """The kept poses (nodes) and the links of ``cands`` (:func:`link_candidates`) between them (edges,
+    their link ids in ``links``)."""
+    G = nx.Graph()
+    G.add_nodes_from(np.flatnonzero(ps.status == "ok").tolist())
+    for li in sorted(cands):
+        a, b = ps.links[li].tolist()
+        if G.has_edge(a, b):
+            G.edges[a, b]["links"].append(li)
+        else:
+            G.add_edge(a, b, links=[li])
+    return G
+
+
+def lazy_reach(G: nx.Graph, goal: int, cands: dict, check, verified: dict, walks: int) -> bool:
+    """LazySP (Dellin & Srinivasa) on the lattice: whether the goal is reached from pose 0 along links
+    one of whose candidates passes ``check`` (candidates ``(n, 3)`` (grasp a, grasp b, link) -> status
+    ``(n,)``, the graph stage's checks), checking only the shortest path's untested candidates each walk, up to
+    ``walks`` walks (then False: undecided). ``verified`` caches (grasp a, grasp b, link) -> ok across
+    calls; links all of whose candidates failed are removed from ``G``."""
+    for _ in range(walks):
+        try:
+            path = nx.shortest_path(G, 0, goal)
+        except nx.NetworkXNoPath:
+            return False
+        on_path = [li for a, b in zip(path, path[1:], strict=False) for li in G.edges[a, b]["links"]]
+        todo = [(ga, gb, li) for li in on_path for ga, gb in cands[li] if (ga, gb, li) not in verified]
+        if todo:
+            for key, st in zip(todo, check(np.array(todo, dtype=np.int64)), strict=True):
+                verified[key] = st == "ok"
+        cut = False
+        for a, b in zip(path, path[1:], strict=False):
+            links = G.edges[a, b]["links"]
+            links[:] = [li for li in links if any(verified[(ga, gb, li)] for ga, gb in cands[li])]
+            if not links:
+                G.remove_edge(a, b)
+                cut = True
+        if not cut:
+            return True
+    return False
+
+
+def _concat(a: dict, b: dict) -> dict:
+    """Two column tables one after the other; ``grasp_id`` renumbered."""
+    out = {k: (a[k] + b[k]) if isinstance(a[k], list) else np.concatenate([a[k], b[k]]) for k in a}
+    if "grasp_id" in out:
+        out["grasp_id"] = np.arange(len(out["grasp_id"]))
+    return out
 
 
 def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r, params: Params) -> dict:
@@ -484,6 +591,67 @@ GRASP_FIELDS = [
 REJECT_FIELDS = [Field("pose_id", "id"), Field("pair_id", "id"), Field("reason")]
 
 
+def _check_links(graph, gp, scene, model, tables, robot, collide, ps: poses.PoseSet, grasps: dict,
+                 cand: np.ndarray) -> np.ndarray:
+    """The graph stage's checks of link candidates ``cand (n, 3)`` (:func:`lazy_reach`): a pivot's
+    (``graph.check_pivot_edges``), a tumble's pusher (``graph.pusher_motions``; rows ``(-1, -1, link)``).
+    ``graph`` is the module and ``gp`` its parameters."""
+    out = np.empty(len(cand), dtype=object)
+    tum = cand[:, 0] < 0
+    if np.any(~tum):
+        p_g, n_g = graph._grasp_geometry(tables, grasps, scene.robot.ball_radius)
+        q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
+        checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
+                                   [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]], p_g, n_g, q_g)
+        out[~tum] = graph.check_pivot_edges(checks, cand[~tum], gp)
+    if np.any(tum):
+        li = cand[tum, 2]
+        con = tables["contacts"]
+        pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
+        nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
+        found = graph.pusher_motions(robot, collide, model, ps.X_WO[ps.links[li, 0]], ps.X_WO[ps.links[li, 1]],
+                                     ps.link_edge[li], pc, nc, scene.robot.ball_radius, gp,
+                                     graph.push_limits(scene, gp))
+        out[tum] = ["ok" if arm is not None else str(what) for arm, what, _ in found]
+    return out
+
+
+def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, collide, params: Params, rng,
+           found: tuple[dict, dict, dict]):
+    """Grasp-aware reach (``Params.reach_rounds``): while the goal is not reached by links whose pivots
+    pass the graph stage's checks (:func:`lazy_reach`), grow the lattice on from the poses the start
+    reaches toward those the goal reaches (``poses.extend_lattice``) and refine the new poses' grasps.
+    ``found`` is ``(grasps, rejects, timings)`` so far (timings updated in place). Returns the pose
+    set, grasps, rejects and the rounds grown."""
+    from stages import graph  # it imports this module's helpers, not this module
+
+    grasps, rejects, timings = found
+    gp = graph.Params()
+    verified: dict = {}
+    ps = lattice.pose_set()
+    for rounds in range(params.reach_rounds + 1):
+        cands = link_candidates(ps, grasps, tumbles=placements[0] != placements[1])
+        G = reach_graph(ps, cands)
+        if ps.goal_id < 0 or rounds == params.reach_rounds:
+            return ps, grasps, rejects, rounds
+        check = functools.partial(_check_links, graph, gp, scene, model, tables, robot, collide, ps, grasps)
+        if lazy_reach(G, ps.goal_id, cands, check, verified, params.reach_walks):
+            return ps, grasps, rejects, rounds
+        n0 = len(ps.status)
+        start_side = sorted(nx.node_connected_component(G, 0))
+        goal_side = [ps.goal_id, *sorted(nx.node_connected_component(G, ps.goal_id) - {ps.goal_id})]
+        poses.extend_lattice(lattice, start_side, goal_side, held_corners(grasps),
+                             int(np.ceil(params.reach_share * scene.planner.max_poses)))
+        ps = lattice.pose_set()
+        if not np.any(ps.status[n0:] == "ok"):
+            return ps, grasps, rejects, rounds + 1
+        more = refine_grasps(scene, model, tables, ps, robot, collide, params, rng, np.arange(n0, len(ps.status)))
+        grasps, rejects = _concat(grasps, more[0]), _concat(rejects, more[1])
+        for k, v in more[2].items():
+            timings[k] = timings.get(k, 0.0) + v
+    return ps, grasps, rejects, params.reach_rounds
+
+
 def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     """Sample poses and refine grasps for ``scene`` with the analysis in ``analysis_dir``."""
     t0 = time.perf_counter()
@@ -503,7 +671,8 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
         status, why = poses.describe_pose(model, X, g, scene.table.size, obstacles, pp)
         if status != "ok":
             raise InputError(f"{scene.path}: {where}: the {where} pose (placement {g}) is {status}: {why}")
-    ps = poses.sample_poses(model, X0, g0, scene.table.size, obstacles, pp, goal=(Xg, gg))
+    lattice = poses.build_lattice(model, X0, g0, scene.table.size, obstacles, pp, goal=(Xg, gg))
+    ps = lattice.pose_set()
     t1 = time.perf_counter()
     # Robot set-up, before the refinement: self-collision pairs and IK seed libraries.
     collide = make_scene_collision_fn(scene, robot, tables["mesh"], params.threads,
@@ -512,6 +681,8 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
     t2 = time.perf_counter()
     rng = np.random.default_rng(pl.seed)
     grasps, rejects, timings = refine_grasps(scene, model, tables, ps, robot, collide, params, rng)
+    ps, grasps, rejects, rounds = _reach(scene, model, tables, lattice, (g0, gg), robot, collide, params, rng,
+                                         (grasps, rejects, timings))
     timings.update(poses=t1 - t0, robot_setup=t2 - t1, total=time.perf_counter() - t0)
     reasons, counts = np.unique(rejects["reason"], return_counts=True)
     summary = {
@@ -521,6 +692,7 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
         "links": {p: int((ps.link_primitive == p).sum()) for p in ("pivot", "tumble")},
         "candidates": int(len(grasps["grasp_id"]) + len(rejects["reason"])),
         "grasps": int(len(grasps["grasp_id"])),
+        "reach_rounds": rounds,
         "rejected": {str(r): int(c) for r, c in zip(reasons, counts, strict=True)},
         "start": {"pose_id": 0, "placement_id": g0},
         "goal": {"pose_id": ps.goal_id, "placement_id": gg,

@@ -463,3 +463,40 @@ def test_a_join_is_also_made_around_each_corner_it_pivots_about():
     assert len(alt.links) > len(one.links)
     for a, b in alt.links:  # every alternative join is kept poses linked by exact pivots
         assert alt.status[a] == "ok" and alt.status[b] == "ok"
+
+
+def test_extend_lattice_pivots_known_poses_only_about_the_corners_their_grasps_hold():
+    """Grasp-aware reach: from a start whose grasps hold one corner alone, every pose grown from it
+    pivots about that corner; new poses (grasps unknown) pivot about any, and the growth heads for
+    the goal's side (its nearest pose comes nearer than the start)."""
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.3, 0.0))
+    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0)
+    lat = poses.build_lattice(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
+    assert lat.goal_id >= 0
+    held = int(poses.pivot_corners(model, prm.corner_cluster, prm.tilt)[g][0])
+    n0 = len(lat.rows)
+    poses.extend_lattice(lat, [0], [lat.goal_id], {0: np.array([held])}, budget=30)
+    ps = lat.pose_set()
+    assert len(ps.status) > n0
+    out_of_start = [v for (a, _), v, p in zip(ps.links, ps.link_vertex, ps.link_primitive, strict=True)
+                    if a == 0 and p == "pivot"]
+    assert out_of_start and set(out_of_start) == {held}
+    grown = np.flatnonzero(ps.parent >= n0)
+    assert len(set(ps.vertex[grown].tolist()) - {-1}) > 1  # new poses pivot about the other corners too
+    com = se3.transform_points(ps.X_WO, model.com)
+    goal_com = se3.transform_points(Xg, model.com)
+    d = np.linalg.norm(com[n0:, :2] - goal_com[:2], axis=1)
+    assert d.min() < np.linalg.norm(com[0, :2] - goal_com[:2]) - 0.1
+
+
+def test_extend_lattice_with_no_corner_held_pivots_nowhere_from_that_pose():
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.3, 0.0))
+    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0)
+    lat = poses.build_lattice(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
+    poses.extend_lattice(lat, [0], [lat.goal_id], {0: np.zeros(0, np.int64)}, budget=30)
+    ps = lat.pose_set()
+    assert not np.any((ps.links[:, 0] == 0) & (ps.link_primitive == "pivot"))
