@@ -218,8 +218,9 @@ def eef_normal_angle_change(robot, q: np.ndarray, X_traj: np.ndarray, n_O: np.nd
 class PivotChecks(NamedTuple):
     """What :func:`check_pivot_edges` checks pivot edges with: the scene, object model and analysis
     tables, robot and collision function, poses ``X_WO (N, 4, 4)`` (W, m), the pivot links' poses
-    ``link_poses (L, 2)`` and vertices ``link_vertex (L,)``, and per grasp its ``pivot_vertices`` as
-    sets, contact points and outward normals ``p_g, n_g (G, 2, 3)`` (O) and joints ``q_g (G, 2, n)``."""
+    ``link_poses (L, 2)``, vertices ``link_vertex (L,)`` and tumble edges ``link_edge (L, 2)``, and per
+    grasp its ``pivot_vertices`` as sets, contact points and outward normals ``p_g, n_g (G, 2, 3)`` (O)
+    and joints ``q_g (G, 2, n)``."""
 
     scene: Scene
     model: poses.ObjectModel
@@ -229,6 +230,7 @@ class PivotChecks(NamedTuple):
     X_WO: np.ndarray
     link_poses: np.ndarray
     link_vertex: np.ndarray
+    link_edge: np.ndarray
     pivot_sets: list
     p_g: np.ndarray
     n_g: np.ndarray
@@ -350,6 +352,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
     checks = PivotChecks(scene, model, tables, robot, collide, X_WO,
                          np.stack([links["pose_a"], links["pose_b"]], axis=1), links["vertex"],
+                         np.stack([links["edge_v0"], links["edge_v1"]], axis=1),
                          [set(x.tolist()) for x in grasps["pivot_vertices"]], p_g, n_g, q_g)
     status = check_pivot_edges(checks, cand, params)
     edges += [(ga, gb, "pivot", w.pivot, str(st), vi, -1, -1, "both")

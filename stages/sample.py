@@ -591,27 +591,22 @@ GRASP_FIELDS = [
 REJECT_FIELDS = [Field("pose_id", "id"), Field("pair_id", "id"), Field("reason")]
 
 
-def _check_links(graph, gp, scene, model, tables, robot, collide, ps: poses.PoseSet, grasps: dict,
-                 cand: np.ndarray) -> np.ndarray:
+def _check_links(graph, gp, checks, tables, cand: np.ndarray) -> np.ndarray:
     """The graph stage's checks of link candidates ``cand (n, 3)`` (:func:`lazy_reach`): a pivot's
-    (``graph.check_pivot_edges``), a tumble's pusher (``graph.pusher_motions``; rows ``(-1, -1, link)``).
-    ``graph`` is the module and ``gp`` its parameters."""
+    (``graph.check_pivot_edges`` with ``checks``, a ``graph.PivotChecks``), a tumble's pusher
+    (``graph.pusher_motions``; rows ``(-1, -1, link)``). ``graph`` is the module, ``gp`` its parameters."""
     out = np.empty(len(cand), dtype=object)
     tum = cand[:, 0] < 0
     if np.any(~tum):
-        p_g, n_g = graph._grasp_geometry(tables, grasps, scene.robot.ball_radius)
-        q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
-        checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
-                                   [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]], p_g, n_g, q_g)
         out[~tum] = graph.check_pivot_edges(checks, cand[~tum], gp)
     if np.any(tum):
-        li = cand[tum, 2]
+        li, X = cand[tum, 2], checks.X_WO
         con = tables["contacts"]
         pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
         nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
-        found = graph.pusher_motions(robot, collide, model, ps.X_WO[ps.links[li, 0]], ps.X_WO[ps.links[li, 1]],
-                                     ps.link_edge[li], pc, nc, scene.robot.ball_radius, gp,
-                                     graph.push_limits(scene, gp))
+        found = graph.pusher_motions(checks.robot, checks.collide, checks.model, X[checks.link_poses[li, 0]],
+                                     X[checks.link_poses[li, 1]], checks.link_edge[li], pc, nc,
+                                     checks.scene.robot.ball_radius, gp, graph.push_limits(checks.scene, gp))
         out[tum] = ["ok" if arm is not None else str(what) for arm, what, _ in found]
     return out
 
@@ -634,7 +629,12 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
         G = reach_graph(ps, cands)
         if ps.goal_id < 0 or rounds == params.reach_rounds:
             return ps, grasps, rejects, rounds
-        check = functools.partial(_check_links, graph, gp, scene, model, tables, robot, collide, ps, grasps)
+        p_g, n_g = graph._grasp_geometry(tables, grasps, scene.robot.ball_radius)
+        q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
+        checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
+                                   ps.link_edge, [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]],
+                                   p_g, n_g, q_g)
+        check = functools.partial(_check_links, graph, gp, checks, tables)
         if lazy_reach(G, ps.goal_id, cands, check, verified, params.reach_walks):
             return ps, grasps, rejects, rounds
         n0 = len(ps.status)
