@@ -60,6 +60,7 @@ import functools
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import networkx as nx
 import numpy as np
@@ -611,13 +612,21 @@ def _check_links(graph, gp, checks, tables, cand: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Reached(NamedTuple):
+    """What the grasp-aware reach leaves: the pose set, grasps and rejects of every round, rounds grown."""
+
+    pose_set: poses.PoseSet
+    grasps: dict
+    rejects: dict
+    rounds: int
+
+
 def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, collide, params: Params, rng,
-           found: tuple[dict, dict, dict]):
+           found: tuple[dict, dict, dict]) -> _Reached:
     """Grasp-aware reach (``Params.reach_rounds``): while the goal is not reached by links whose pivots
     pass the graph stage's checks (:func:`lazy_reach`), grow the lattice on from the poses the start
     reaches toward those the goal reaches (``poses.extend_lattice``) and refine the new poses' grasps.
-    ``found`` is ``(grasps, rejects, timings)`` so far (timings updated in place). Returns the pose
-    set, grasps, rejects and the rounds grown."""
+    ``found`` is ``(grasps, rejects, timings)`` so far (timings updated in place)."""
     from stages import graph  # it imports this module's helpers, not this module
 
     grasps, rejects, timings = found
@@ -628,7 +637,7 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
         cands = link_candidates(ps, grasps, tumbles=placements[0] != placements[1])
         G = reach_graph(ps, cands)
         if ps.goal_id < 0 or rounds == params.reach_rounds:
-            return ps, grasps, rejects, rounds
+            break
         p_g, n_g = graph._grasp_geometry(tables, grasps, scene.robot.ball_radius)
         q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
         checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
@@ -636,7 +645,7 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
                                    p_g, n_g, q_g)
         check = functools.partial(_check_links, graph, gp, checks, tables)
         if lazy_reach(G, ps.goal_id, cands, check, verified, params.reach_walks):
-            return ps, grasps, rejects, rounds
+            break
         n0 = len(ps.status)
         start_side = sorted(nx.node_connected_component(G, 0))
         goal_side = [ps.goal_id, *sorted(nx.node_connected_component(G, ps.goal_id) - {ps.goal_id})]
@@ -644,12 +653,13 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
                              int(np.ceil(params.reach_share * scene.planner.max_poses)))
         ps = lattice.pose_set()
         if not np.any(ps.status[n0:] == "ok"):
-            return ps, grasps, rejects, rounds + 1
+            rounds += 1
+            break
         more = refine_grasps(scene, model, tables, ps, robot, collide, params, rng, np.arange(n0, len(ps.status)))
         grasps, rejects = _concat(grasps, more[0]), _concat(rejects, more[1])
         for k, v in more[2].items():
             timings[k] = timings.get(k, 0.0) + v
-    return ps, grasps, rejects, params.reach_rounds
+    return _Reached(ps, grasps, rejects, rounds)
 
 
 def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
