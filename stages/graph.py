@@ -129,7 +129,7 @@ class Graph:
     timings: dict
 
 
-def _grasp_geometry(tables, grasps, r):
+def grasp_geometry(tables, grasps, r):
     """Ball contact points and centres in O for each grasp: ``(G, 2, 3)`` points, normals (outward)."""
     con = tables["contacts"]
     p = np.stack([con["px"], con["py"], con["pz"]], axis=1)
@@ -312,7 +312,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     G = len(grasps)
     q_g = np.stack([np.stack(list(grasps["q_left"])), np.stack(list(grasps["q_right"]))], axis=1) if G else \
         np.zeros((0, 2, robot.arm("left").dof))
-    p_g, n_g = _grasp_geometry(tables, grasps, r)
+    p_g, n_g = grasp_geometry(tables, grasps, r)
 
     # Nodes: grasp nodes first (node id = grasp id), then one free node per kept SP pose.
     kept_sp = np.flatnonzero((ps["status"] == "ok") & (ps["support"] == "SP"))

@@ -384,10 +384,7 @@ class _Lattice:
 
     def corners_at(self, i: int, usable: dict[int, np.ndarray] | None) -> list[np.ndarray]:
         """The pivot corners per placement for row ``i``: those its grasps hold where ``usable`` knows them."""
-        if usable is None or i not in usable:
-            return self.corners
-        g = self.rows[i]["g"]
-        return [*self.corners[:g], np.intersect1d(self.corners[g], usable[i]), *self.corners[g + 1:]]
+        return _held(self.corners, self.rows[i]["g"], (i,), usable)
 
     def key_of(self, X: np.ndarray, g: int) -> tuple[int, float, float, float]:
         """(placement, CoM x, CoM y, yaw) of the object at ``X`` on placement ``g`` (m, rad, W)."""
@@ -629,15 +626,21 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
         i, j = a[flat // len(b)], b[flat % len(b)]
         if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
             break
-        cs = corners
-        if usable is not None:
-            g = rows[j]["g"]
-            ids = corners[g]
-            for k in (int(i), int(j)):
-                ids = np.intersect1d(ids, usable[k]) if k in usable else ids
-            cs = [*corners[:g], ids, *corners[g + 1:]]
+        cs = _held(corners, rows[j]["g"], (int(i), int(j)), usable)
         joined += _connect(model, cs, rows, add, int(i), rows[j]["X"], rows[j]["g"], params) == j
     return joined
+
+
+def _held(corners: list[np.ndarray], g: int, rows: tuple[int, ...], usable: dict[int, np.ndarray] | None):
+    """``corners`` (hull vertex ids per placement) with placement ``g``'s cut to those the grasps of every
+    row in ``rows`` hold, where ``usable`` (row id -> vertex ids) knows them (:func:`extend_lattice`)."""
+    if usable is None:
+        return corners
+    ids = corners[g]
+    for k in rows:
+        if k in usable:
+            ids = np.intersect1d(ids, usable[k])
+    return [*corners[:g], ids, *corners[g + 1:]]
 
 
 def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params: Params) -> int:

@@ -638,7 +638,7 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
         G = reach_graph(ps, cands)
         if ps.goal_id < 0 or rounds == params.reach_rounds:
             break
-        p_g, n_g = graph._grasp_geometry(tables, grasps, scene.robot.ball_radius)
+        p_g, n_g = graph.grasp_geometry(tables, grasps, scene.robot.ball_radius)
         q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
         checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
                                    ps.link_edge, [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]],
