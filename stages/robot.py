@@ -1574,17 +1574,9 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     if not len(c):
         return k, c
     a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
-    n, d = msh.planes[:, :3], msh.planes[:, 3]
-    sa, sb = n @ a - d[:, None], n @ b - d[:, None]  # (F, K) signed distances
-    # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
-    ds = sb - sa
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = (rc - sa) / ds
-    lo = np.max(np.where(ds < 0, bound, 0.0), axis=0, initial=0.0)
-    hi = np.min(np.where(ds > 0, bound, 1.0), axis=0, initial=1.0)
-    separated = (lo > hi) | np.any((ds == 0) & (sa > rc), axis=0)
-    c, k, a, b, rc, sa = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
-        sa[:, ~separated]
+    separated, start_in = _hull_separated(msh.planes, a, b, rc)
+    c, k, a, b, rc, start_in = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
+        start_in[~separated]
     # Exact early accept: a capsule that reaches a sphere inside the solid. Only capsules below a row's
     # lowest accepted one need python-fcl (each row reports its lowest colliding capsule).
     accept = _reaches_inner(msh.inner, a, b, rc)
@@ -1612,7 +1604,7 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
         if fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0:
             hit[i] = row_hit[ki] = True
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
-    inside = tested & ~hit & np.all(sa <= 0.0, axis=0)
+    inside = tested & ~hit & start_in
     if inside.any() and not msh.convex:
         # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
         # surface: a simplification that moved no surface by more than rc answers alike, faster.
@@ -1625,6 +1617,30 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     hit = np.flatnonzero(hit)[first]
     order = np.lexsort((k[hit], c[hit]))
     return k[hit][order], c[hit][order]
+
+
+def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray,
+                    chunk: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
+    """Cyrus–Beck clipping of segments ``a b (3, K)`` (mesh frame) by the hull's face planes
+    ``planes (F, 4)`` (``n . x <= d``) pushed out by ``rc (K,)`` m: ``separated (K,)``, the clipped
+    segment is empty (the inflated capsule misses the hull), and ``start_in (K,)``, ``a`` lies inside
+    every plane. Columns in slices of about ``chunk // F``, so memory stays bounded on fine hulls."""
+    n, d = planes[:, :3], planes[:, 3]
+    K = a.shape[1]
+    separated, start_in = np.zeros(K, bool), np.zeros(K, bool)
+    step = max(1, chunk // max(len(planes), 1))
+    for s in range(0, K, step):
+        sl = slice(s, s + step)
+        sa, sb = n @ a[:, sl] - d[:, None], n @ b[:, sl] - d[:, None]  # (F, k) signed distances
+        # Parameters t in [0, 1] of the segment within every plane pushed out by rc: sa + t (sb - sa) <= rc.
+        ds = sb - sa
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = (rc[sl] - sa) / ds
+        lo = np.max(np.where(ds < 0, bound, 0.0), axis=0, initial=0.0)
+        hi = np.min(np.where(ds > 0, bound, 1.0), axis=0, initial=1.0)
+        separated[sl] = (lo > hi) | np.any((ds == 0) & (sa > rc[sl]), axis=0)
+        start_in[sl] = np.all(sa <= 0.0, axis=0)
+    return separated, start_in
 
 
 def _reaches_inner(inner: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray) -> np.ndarray:

@@ -581,6 +581,26 @@ def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl()
     assert got == want
 
 
+def test_hull_clipping_knows_the_unit_cube_and_does_not_depend_on_its_slices():
+    """Cyrus-Beck against the cube [-0.5, 0.5]^3: a segment 0.1 m beyond a face is separated at radius
+    0.05 and not at 0.15; one through the cube is not; ``start_in`` is its start inside every plane.
+    Slicing the columns (the memory bound on fine hulls) changes no answer."""
+    cube = trimesh.creation.box((1.0, 1.0, 1.0))
+    planes = np.column_stack([cube.face_normals, np.einsum("ij,ij->i", cube.face_normals,
+                                                           cube.triangles[:, 0])])
+    a = np.array([[0.6, -0.2, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    b = np.array([[0.6, 0.2, 0.0], [-0.6, -0.6, 2.0], [0.0, 0.0, 0.0]])
+    sep, start_in = rb._hull_separated(planes, a.T, b.T, np.array([0.05, 0.05, 0.05]))
+    assert sep.tolist() == [True, False, False] and start_in.tolist() == [False, True, True]
+    assert not rb._hull_separated(planes, a.T[:, :1], b.T[:, :1], np.array([0.15]))[0][0]
+    rng = np.random.default_rng(0)
+    A, B, rc = rng.uniform(-1, 1, (3, 500)), rng.uniform(-1, 1, (3, 500)), rng.uniform(0, 0.2, 500)
+    whole = rb._hull_separated(planes, A, B, rc)
+    sliced = rb._hull_separated(planes, A, B, rc, chunk=len(planes) * 7)
+    assert all(np.array_equal(x, y) for x, y in zip(whole, sliced, strict=True))
+    assert 0 < whole[0].sum() < 500
+
+
 # ----------------------------------------------------------------------------------------------------
 # Bad input
 
