@@ -758,12 +758,16 @@ def push_levers(p_W: np.ndarray, n_W: np.ndarray, p_axis: np.ndarray, a_axis: np
     return along + mu * np.linalg.norm(m - along[:, None] * n_in, axis=1)
 
 
+def tip_angle(model, roll: poses.Roll) -> float:
+    """The roll angle (rad) at which the CoM crosses over the axis (its highest point along ``roll``)."""
+    grid = np.linspace(0.0, roll.total, 721)
+    return float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
+
+
 def release_angle(model, roll: poses.Roll, params: Params) -> float:
     """The pusher's release angle along ``roll`` (rad): ``push_angle``, and at least ``release_past_tip``
-    past the angle where the CoM crosses over the axis (its highest point), at most the landing."""
-    grid = np.linspace(0.0, roll.total, 721)
-    th_tip = float(grid[np.argmax(se3.transform_points(roll.poses(grid), model.com)[:, 2])])
-    return min(max(params.push_angle, th_tip + params.release_past_tip), roll.total)
+    past the tip (:func:`tip_angle`), at most the landing."""
+    return min(max(params.push_angle, tip_angle(model, roll) + params.release_past_tip), roll.total)
 
 
 def pusher_motion(robot, collide, model, Xa, Xb, e0, e1, pc, nc, r, params: Params, limits: PushLimits,

@@ -54,6 +54,15 @@ that lands (the "back" the object falls onto), high up, and both balls follow th
      ``{catcher}_before`` transit ends there); it lowers the object into the USP pose and keeps
      holding it alone; the plan's next step (a regrasp) hands the object over to a grasp.
 
+Into SP, when no catcher works (none within reach, as where the object tips away from the robot, or
+none whose joints or MPC pass), the tumble is a **drop** (:func:`_plan_drop`; §5.2.2: "one EEF rotates
+the object around one edge ... until it moves to SP"): the other arm backs off its contact, the pusher
+alone turns the object to its tip (``stages.graph.tip_angle``) and reaches it at a known rate with no
+acceleration (:func:`drop_profile`; the tumbling MPC with the pusher only and no least force, which
+fades to nothing there), and the object falls on from that rate as gravity alone turns it
+(:func:`_free_fall`), a fall physics follows to a few degrees, where one from rest past the tip runs
+ahead of any plan.
+
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
 normal within ``catch_cone`` of the landing direction) whose ball the catcher reaches at the start and
 at the release, largest lever arm about the axis first (less the offset from the CoM along the axis),
@@ -79,7 +88,7 @@ An MPC failure on an existing plan is reported (status ``mpc_infeasible`` with t
 the stage exits 1: ``pivot plan`` runs the same MPC while it searches, so a plan it accepted passes
 unless the MPC parameters were changed here. A tumble that finds no catcher, no IK or no transit is
 reported the same way with its reason code (``no_catcher``, ``ik_unreachable``, ``no_transit_path``,
-...).
+...); into SP that code is the catch's, after the drop failed too (both reasons in the message).
 """
 
 from __future__ import annotations
@@ -97,7 +106,7 @@ from stages import artifacts, mpc, poses, provenance, se3, stability, stagelog, 
 from stages.artifacts import Field
 from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
-from stages.graph import push_limits, pusher_motion, release_angle
+from stages.graph import push_limits, pusher_motion, release_angle, tip_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import load_robot
@@ -915,11 +924,16 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         candidates = np.array([_contact_at(env, catcher, q_after[catcher], X_to, f"plan step {k}")])
     else:
         candidates = _catch_candidates(env, roll, catcher, release_angle(model, roll, gp), P)
-    if not len(candidates):
-        raise TumbleError("no_catcher", f"step {k}: no contact on the landing face within the {catcher} arm's reach")
-
     th_r = release_angle(model, roll, gp)
-    got = _find_catch(env, roll, k, pusher, c_p, q_push[0], candidates, usp, X_to, q_after[catcher], th_r)
+    try:
+        if not len(candidates):
+            raise TumbleError("no_catcher",
+                              f"step {k}: no contact on the landing face within the {catcher} arm's reach")
+        got = _find_catch(env, roll, k, pusher, c_p, q_push[0], candidates, usp, X_to, q_after[catcher], th_r)
+    except TumbleError as err:  # into SP the pusher alone may tip the object over and let it fall
+        if usp or err.code not in ("no_catcher", "mpc_infeasible"):
+            raise
+        return _plan_drop(env, tl, _Drop(k, step, roll, X_from, X_to, pusher, c_p, q_push[0], q_after), err)
     c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = got[:-1]
     X_mpc, f_mpc, f_tab, errs = got.mpc
     T = len(theta)
@@ -951,7 +965,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
                f={catcher: np.broadcast_to(f_mpc[-1, ic], (n_out, 3))}, q={catcher: q_out},
                c={catcher: np.ones(n_out, bool)})
         tl.q[catcher] = q_out[-1]
-        X_drop = _free_fall(env, roll, th_c, dt)
+        X_drop = roll.poses(_free_fall(env, roll, th_c, dt))
         tl.add(k, "tumble", "drop", X_drop, X_start=X_from)
         tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
     elif mode == "place":
@@ -969,22 +983,142 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         s_ = _min_jerk_kernel(np.arange(T_s) / max(T_s - 1, 1))[:, None]
         tl.add(k, "tumble", "settle", np.broadcast_to(X_to, (T_s, 4, 4)), X_start=X_from,
                f={catcher: (1.0 - s_) * f_mpc[-1, ic] + s_ * f_h})
-    # The arms go where the plan has them at the end of the step.
-    for arm in (pusher, catcher):
-        if np.abs(tl.q[arm] - q_after[arm]).max() < 1e-9:
-            continue
-        touching = tl.contact[arm] >= 0
-        res = transit.plan_transit(robot, env.collide, arm, tl.q[arm], q_after[arm], tl.q[_other(arm)], X_to,
-                                   env.params.transit,
-                                   n_start=se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None,
-                                   n_goal=se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None)
-        if res.status != "ok":
-            raise TumbleError(res.status, f"step {k}: the {arm} arm's way back: {res.reason}")
-        tl.move_arm(arm, res.path, X_to, k, tl.contact[arm], f_hold=f_h if usp and arm == pusher else None)
+    _arms_back(env, tl, k, (pusher, catcher), q_after, X_to, f_h if usp else None)
     return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "catcher_ik": ik,
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
+
+
+def _arms_back(env: _Env, tl: _Timeline, k: int, arms: tuple, q_after: dict, X_to: np.ndarray, f_h) -> None:
+    """Each of ``arms`` (pusher first), by a planned transit, to where the plan has it at the end of the
+    step, ``q_after``; ``f_h`` (N, W): the catcher's holding force in USP meanwhile, None in SP."""
+    for arm in arms:
+        if np.abs(tl.q[arm] - q_after[arm]).max() < 1e-9:
+            continue
+        touching = tl.contact[arm] >= 0
+        n_c = se3.rotate_vectors(X_to, env.n_O[tl.contact[arm]]) if touching else None
+        res = transit.plan_transit(env.robot, env.collide, arm, tl.q[arm], q_after[arm], tl.q[_other(arm)], X_to,
+                                   env.params.transit, n_start=n_c, n_goal=n_c)
+        if res.status != "ok":
+            raise TumbleError(res.status, f"step {k}: the {arm} arm's way back: {res.reason}")
+        tl.move_arm(arm, res.path, X_to, k, tl.contact[arm], f_hold=f_h if arm == arms[0] else None)
+
+
+class _Drop(NamedTuple):
+    """A tumble into SP to be done by a drop (:func:`_plan_drop`): plan step ``k`` and its ``step``, the
+    ``roll`` from ``X_from`` to ``X_to``, the ``pusher`` on contact ``c_p`` from joints ``q_p0``, and
+    where the plan has each arm at the end, ``q_after``."""
+
+    k: int
+    step: dict
+    roll: Roll
+    X_from: np.ndarray
+    X_to: np.ndarray
+    pusher: str
+    c_p: int
+    q_p0: np.ndarray
+    q_after: dict
+
+
+def drop_profile(roll: Roll, th_tip: float, P: TumbleParams, dt: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(t, theta, rate)`` of a drop: grip, then the pusher alone turns the object to the tip ``th_tip``
+    (rad), at rest at each axis switch before it; the last piece is the first half of a minimum-jerk
+    move to twice its angle, so that the object reaches the tip at its top speed ``rate`` (rad/s),
+    with no acceleration, and falls on from there as gravity alone turns it (:func:`_free_fall`): a
+    fall from a known rate, not from rest at an unstable balance whose timing physics cannot match."""
+    sw = [float(a) for a in roll.switches if 1e-9 < a < th_tip - 1e-9]
+    ks = [0.0, 0.0, *sw]
+    ds = [P.grip_time, *[max(P.push_time * (b - a) / th_tip, 0.25) for a, b in zip(ks[1:-1], ks[2:], strict=True)]]
+    t1, th1 = mpc.knot_profile(ks, ds, dt)
+    n = max(2, int(round(max(P.push_time * (th_tip - ks[-1]) / th_tip, 0.5) / dt)))
+    s_ = np.arange(1, n + 1) / n
+    th2 = ks[-1] + 2.0 * (th_tip - ks[-1]) * mpc.min_jerk(0.5 * s_)
+    return np.r_[t1, t1[-1] + n * dt * s_], np.r_[th1, th2], 1.875 * (th_tip - ks[-1]) / (n * dt)
+
+
+def _back_off(env: _Env, tl: _Timeline, arm: str, X: np.ndarray, k: int) -> None:
+    """``arm``'s ball, if on the object at ``X``, backs off ``TumbleParams.retreat`` along its contact's
+    normal (a transit by IK along the line)."""
+    c = tl.contact[arm]
+    if c < 0:
+        return
+    P = env.params.tumble
+    s_ = P.retreat * mpc.min_jerk(np.linspace(0.0, 1.0, 8))
+    tgt = se3.transform_points(X, env.p_O[c] + (env.r + s_[:, None]) * env.n_O[c])
+    res = env.robot.ik_trajectory(arm, tgt, tl.q[arm])
+    if not res.ok.all():
+        raise TumbleError(str(res.reason[np.argmin(res.ok)]), f"step {k}: the {arm} ball cannot back off its contact")
+    tl.move_arm(arm, res.q, X, k, -1)
+
+
+def _drop_clear(env: _Env, q_other: np.ndarray, pusher: str, q_p: np.ndarray, X: np.ndarray) -> str:
+    """The collision check of a drop (``"ok"`` or the first collision): the pusher along ``q_p`` (then
+    still) with its ball exempt from the object (it pushes, then the object falls away from it), the
+    other arm still at ``q_other``, the object along ``X (T, 4, 4)``."""
+    qp = np.concatenate([q_p, np.broadcast_to(q_p[-1], (len(X) - len(q_p), q_p.shape[1]))])
+    qo = np.broadcast_to(q_other, qp.shape)
+    touching = np.zeros((len(X), 2), bool)
+    touching[:, ARMS.index(pusher)] = True
+    ok, why = _collision_free(env, *((qp, qo) if pusher == "left" else (qo, qp)), X, touching,
+                              env.params.tumble.check_every)
+    return "ok" if ok else why
+
+
+def _plan_drop(env: _Env, tl: _Timeline, d: _Drop, no_catch: TumbleError) -> dict:
+    """Rows of a tumble into SP that no catcher can do (``no_catch`` says why): the other arm lets go of
+    the object, the pusher alone turns it over its edge to the tip (:func:`drop_profile`, the tumbling
+    MPC with the pusher only) and leaves it there; it falls onto its new face (module docstring,
+    "Tumble", 5.; §5.2.2: "one EEF rotates the object around one edge ... until it moves to SP").
+    Checked as a catch is (IK, collisions, MPC; the other arm goes to its rest posture first when it
+    is in the object's way); raises :class:`TumbleError` with the catch's code and both reasons when
+    it fails too."""
+    P, dt, r, robot = env.params.tumble, env.params.mpc.dt, env.r, env.robot
+    k, pusher, c_p = d.k, d.pusher, d.c_p
+    catcher = _other(pusher)
+
+    def fail(why: str):
+        return TumbleError(no_catch.code, f"{no_catch}; no drop either: {why}")
+
+    th_tip = tip_angle(env.model, d.roll)
+    t_prof, theta, rate = drop_profile(d.roll, th_tip, P, dt)
+    X_ref = d.roll.poses(theta)
+    T = len(theta)
+    tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
+    q_p, why = ik_follow(robot, pusher, tgt_p, X_ref, env.n_O[c_p], d.q_p0, env.params.ik_every)
+    if why != "ok":
+        raise fail(f"the pusher's IK to the tip: {why}")
+    X_fall = d.roll.poses(_free_fall(env, d.roll, th_tip, dt, rate))
+    tl.move_arm(pusher, d.step["transit"][pusher], d.X_from, k, -1)
+    _back_off(env, tl, catcher, d.X_from, k)
+    X_all = np.concatenate([X_ref, X_fall, d.X_to[None]])
+    why = _drop_clear(env, tl.q[catcher], pusher, q_p, X_all)
+    rest = robot.arm(catcher).q_rest
+    if why != "ok" and np.abs(tl.q[catcher] - rest).max() > 1e-9:  # the other arm out of the way, at rest
+        res = transit.plan_transit(robot, env.collide, catcher, tl.q[catcher], rest, tl.q[pusher], d.X_from,
+                                   env.params.transit)
+        if res.status == "ok" and _drop_clear(env, rest, pusher, q_p, X_all) == "ok":
+            tl.move_arm(catcher, res.path, d.X_from, k, -1)
+            why = "ok"
+    if why != "ok":
+        raise fail(why)
+    # The pusher's force fades to nothing at the tip, where the object leaves it: no least force.
+    out = tumble_mpc(env.scene.object.mass, env.inertia, env.model, d.roll, theta, t_prof, X_ref, np.ones(T, bool),
+                     env.p_O[[c_p, c_p]], env.n_O[[c_p, c_p]], replace(env.mp, f_min=0.0), on_c=np.zeros(T, bool))
+    if isinstance(out, str):
+        raise fail(out)
+    X_mpc, f_mpc, f_tab, errs = out
+    tl.add(k, "tumble", np.where(t_prof < P.grip_time, "grip", "push"), X_mpc, X_ref=X_ref, X_start=d.X_from,
+           p={pusher: _ball_centres(X_mpc, env.p_O[c_p], env.n_O[c_p], r)}, f={pusher: f_mpc[:, 0]},
+           q={pusher: q_p}, c={pusher: np.ones(T, bool)}, f_table=f_tab)
+    tl.q[pusher] = q_p[-1]  # where the object leaves it: it stays there until the object has landed
+    tl.add(k, "tumble", "drop", X_fall, X_start=d.X_from)
+    tl.hold(d.X_to, k, P.settle, kind="tumble", phase="settle", X_start=d.X_from)
+    _arms_back(env, tl, k, (pusher, catcher), d.q_after, d.X_to, None)
+    return {"catcher": catcher, "catch_contact": -1, "mode": "drop", "catcher_ik": "",
+            "release_deg": float(np.degrees(th_tip)), "catch_end_deg": float(np.degrees(th_tip)),
+            "total_deg": float(np.degrees(d.roll.total)), "segments": len(d.roll.angle),
+            "mpc_max_error": max(errs) if errs else 0.0, "drop_rate_deg_s": float(np.degrees(rate))}
 
 
 def tumble_profile(roll: Roll, th_r: float, th_c: float, P: TumbleParams, dt: float):
@@ -1004,11 +1138,14 @@ def tumble_profile(roll: Roll, th_r: float, th_c: float, P: TumbleParams, dt: fl
     return t_prof, theta, on_p
 
 
-def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O, n_O, mp: mpc.Params):
+def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O, n_O, mp: mpc.Params,
+               on_c=None):
     """The tumbling MPC along a roll, one run per segment (at rest at every switch): pusher and catcher
-    contacts ``p_O, n_O (2, 3)`` (outward normals), the pusher on while ``on_p``. Returns
-    ``(X, f_eef (T, 2, 3), f_table, max errors)`` or the reason it fails."""
+    contacts ``p_O, n_O (2, 3)`` (outward normals), the pusher on while ``on_p``, the catcher while
+    ``on_c`` (None: throughout). Returns ``(X, f_eef (T, 2, 3), f_table, max errors)`` or the reason
+    it fails."""
     T = len(theta)
+    on_c = np.ones(T, bool) if on_c is None else np.asarray(on_c, bool)
     seg = np.array([roll.segment_of(th) for th in theta])
     X_mpc, f_mpc, f_tab = X_ref.copy(), np.zeros((T, 2, 3)), np.zeros((T, 3))
     errs = []
@@ -1019,7 +1156,7 @@ def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O
             continue
         p_edge = se3.transform_points(roll.X_seg[s_id], model.vertices[roll.edge[s_id]])
         res = mpc.run_tumble_mpc(mass, inertia, model.com, p_O, -n_O, p_edge, t_prof[rows] - t_prof[rows[0]],
-                                 X_ref[rows], mp, contact_mask=np.stack([on_p[rows], np.ones(len(rows), bool)], 1))
+                                 X_ref[rows], mp, contact_mask=np.stack([on_p[rows], on_c[rows]], 1))
         if res.status != "ok":
             when = "before" if on_p[rows[min(res.fail_step, len(rows) - 1)]] else "after"
             return (f"the tumbling MPC fails at row {res.fail_step} of segment {s_id} ({res.fail_reason}, "
@@ -1029,10 +1166,10 @@ def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O
     return X_mpc, f_mpc, f_tab, errs
 
 
-def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
-    """Planned poses ``(T, 4, 4)`` of the object falling from rest at roll angle ``th_c`` onto its face:
-    the rotation about the current axis with gravity alone (``mpc.integrate_rotation``), then any
-    narrow faces left, a row each."""
+def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float, rate: float = 0.0) -> np.ndarray:
+    """Planned roll angles ``(T,)`` (rad), a row ``dt`` apart, of the object falling from ``th_c``,
+    turning at ``rate`` (rad/s, along the roll), onto its face: the rotation about the current axis
+    with gravity alone (``mpc.integrate_rotation``), then any narrow faces left, a row each."""
     s_id = roll.segment_of(th_c)
     end = float(np.cumsum(roll.angle)[s_id])
     X_c = roll.poses([th_c])[0]
@@ -1040,13 +1177,15 @@ def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float) -> np.ndarray:
     zeros = np.zeros((2, 3))
     rot = mpc.make_rotation_model(env.scene.object.mass, env.inertia, env.model.com, zeros,
                                   np.array([[0.0, 0.0, 1.0]] * 2), sup_O, env.mp.g)
-    R, nu, th, out = X_c[:3, :3], np.zeros(1), th_c, []
+    # The model's rate is about its edge's direction (first to second vertex), the roll's about a_axis.
+    e_W = X_c[:3, :3] @ (sup_O[1] - sup_O[0])
+    R, nu, th, out = X_c[:3, :3], np.array([rate * np.sign(e_W @ roll.a_axis[s_id] or 1.0)]), th_c, []
     while th < end - 1e-9 and len(out) < 200:  # a fraction of a second
         R, nu = mpc.integrate_rotation(rot, R, nu, zeros, dt, substeps=4)
         th = th_c + float(Rotation.from_matrix(R @ X_c[:3, :3].T).as_rotvec() @ roll.a_axis[s_id])
         out.append(min(th, end))
     later = np.cumsum(roll.angle)[s_id + 1:]
-    return roll.poses(np.r_[out, later])
+    return np.r_[out, later]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -1081,6 +1220,11 @@ def check_tumble(env: _Env, q: dict, step: dict, X_from: np.ndarray, X_to: np.nd
     tumble it walks (§5.3's motion-level check, lazily), so that this stage does not fail on one."""
     tl = make_timeline(env)
     tl.q = {a: np.asarray(q[a], dtype=float).copy() for a in ARMS}
+    for a in ARMS:  # a ball the plan left on the object leaves it as in this stage's timeline
+        try:
+            tl.contact[a] = _contact_at(env, a, tl.q[a], X_from, "check_tumble")
+        except InputError:
+            tl.contact[a] = -1
     try:
         plan_tumble(env, tl, 0, step, X_from, X_to)
     except TumbleError as err:

@@ -746,6 +746,29 @@ def test_tumble_without_the_catcher_goes_over(piano_analysis, pivot_case):
 
 
 @pytest.mark.slow
+def test_tumble_no_catcher_reaches_is_a_drop_from_the_tip(piano_analysis, pivot_case, monkeypatch):
+    """No catching contact within the right arm's reach (as where the object tips away from the robot):
+    the pusher alone turns the piano to its tip (18 deg) at its top speed, lets it fall onto its back
+    as planned (gravity alone from that rate) and backs off (§5.2.2: one EEF into SP)."""
+    from stages import trajectory
+
+    monkeypatch.setattr(trajectory, "_catch_candidates", lambda *a, **k: np.zeros(0, np.int64))
+    info, cols, ex = _run_tumble(piano_analysis, (0.9, 1.0), pivot_case["params"])
+    m = ex.metrics
+    assert info["mode"] == "drop" and info["catch_contact"] == -1 and info["segments"] == 2
+    assert 17.0 < info["release_deg"] < 19.0 and 5.0 < info["drop_rate_deg_s"] < 15.0
+    phase, kind = np.asarray(cols["phase"]), np.asarray(cols["kind"])
+    tum = kind == "tumble"
+    assert not np.asarray(cols["right_contact"])[tum].any()  # the other arm never touches it
+    assert not np.asarray(cols["left_contact"])[tum & (phase == "drop")].any()
+    # Measured: it lands 7.9 mm and 0.7 deg off, its edge slid 11 mm, at most 5.4 deg from the planned
+    # fall (the same fall from rest at 40 deg, unplanned, ran 60 deg ahead: the test above).
+    assert m["success"], m
+    assert m["max_tilt_deviation_deg"] < 10.0 and not m["fell"] and not m["collision"]
+    assert m["max_ball_force"] < 20.0
+
+
+@pytest.mark.slow
 def test_tumble_into_usp_is_held_by_the_catcher_beyond_the_table_edge(piano_analysis, pivot_case):
     """A 0.42 m table: on its back the piano's CoM lies 5 cm beyond the edge, a USP pose (Fig. 14).
     Into USP the plan names the destination grasp, whose catching ball holds the object alone; here
