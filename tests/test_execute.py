@@ -745,6 +745,27 @@ def test_tumble_without_the_catcher_goes_over(piano_analysis, pivot_case):
     assert ex.metrics["max_tilt_deviation_deg"] > 30.0 and ex.metrics["max_edge_slip"] > 0.01
 
 
+def test_drop_profile_reaches_the_tip_at_its_top_speed_with_no_acceleration():
+    """A roll of 90 deg whose axis switches at 10 deg, tip at 30 deg: grip at rest, at rest at the
+    switch, then the first half of a minimum-jerk move to 50 deg: the tip at 1.875 (20 deg) / T."""
+    from stages import trajectory
+    from stages.poses import Roll
+
+    X = np.broadcast_to(np.eye(4), (2, 4, 4))
+    roll = Roll(X, np.zeros((2, 3)), np.array([[1.0, 0, 0]] * 2), np.radians([10.0, 80.0]), np.zeros((2, 2), int),
+                1, np.eye(4))
+    P, dt = trajectory.TumbleParams(), 1.0 / 24.0
+    t, th, rate = trajectory.drop_profile(roll, np.radians(30.0), P, dt)
+    np.testing.assert_allclose(np.diff(t), dt, atol=1e-12)
+    assert th[0] == 0.0 and np.all(th[t < P.grip_time] == 0.0) and np.all(np.diff(th) >= 0.0)
+    assert np.isclose(th[-1], np.radians(30.0))
+    at_switch = np.flatnonzero(np.isclose(th, np.radians(10.0)))
+    assert len(at_switch) and np.all(np.abs(np.diff(th[at_switch[0] - 1: at_switch[0] + 2])) < np.radians(0.01))
+    v = np.diff(th) / dt
+    assert np.isclose(rate, 1.875 * np.radians(20.0) / (t[-1] - t[at_switch[-1]]), rtol=0.05)
+    assert abs(v[-1] - rate) < 0.02 * rate and abs(v[-1] - v[-2]) < 0.01 * rate  # top speed, no acceleration
+
+
 @pytest.mark.slow
 def test_tumble_no_catcher_reaches_is_a_drop_from_the_tip(piano_analysis, pivot_case, monkeypatch):
     """No catching contact within the right arm's reach (as where the object tips away from the robot):
