@@ -1037,19 +1037,20 @@ def drop_profile(roll: Roll, th_tip: float, P: TumbleParams, dt: float) -> tuple
     return np.r_[t1, t1[-1] + n * dt * s_], np.r_[th1, th2], 1.875 * (th_tip - ks[-1]) / (n * dt)
 
 
-def _back_off(env: _Env, tl: _Timeline, arm: str, X: np.ndarray, k: int) -> None:
+def _back_off(env: _Env, tl: _Timeline, arm: str, X: np.ndarray, k: int) -> str:
     """``arm``'s ball, if on the object at ``X``, backs off ``TumbleParams.retreat`` along its contact's
-    normal (a transit by IK along the line)."""
+    normal (a transit by IK along the line); ``"ok"`` or why it cannot."""
     c = tl.contact[arm]
     if c < 0:
-        return
+        return "ok"
     P = env.params.tumble
     s_ = P.retreat * mpc.min_jerk(np.linspace(0.0, 1.0, 8))
     tgt = se3.transform_points(X, env.p_O[c] + (env.r + s_[:, None]) * env.n_O[c])
     res = env.robot.ik_trajectory(arm, tgt, tl.q[arm])
     if not res.ok.all():
-        raise TumbleError(str(res.reason[np.argmin(res.ok)]), f"step {k}: the {arm} ball cannot back off its contact")
+        return f"the {arm} ball cannot back off its contact ({res.reason[np.argmin(res.ok)]})"
     tl.move_arm(arm, res.q, X, k, -1)
+    return "ok"
 
 
 def _drop_clear(env: _Env, q_other: np.ndarray, pusher: str, q_p: np.ndarray, X: np.ndarray) -> str:
@@ -1090,7 +1091,9 @@ def _plan_drop(env: _Env, tl: _Timeline, d: _Drop, no_catch: TumbleError) -> dic
         raise fail(f"the pusher's IK to the tip: {why}")
     X_fall = d.roll.poses(_free_fall(env, d.roll, th_tip, dt, rate))
     tl.move_arm(pusher, d.step["transit"][pusher], d.X_from, k, -1)
-    _back_off(env, tl, catcher, d.X_from, k)
+    why = _back_off(env, tl, catcher, d.X_from, k)
+    if why != "ok":
+        raise fail(why)
     X_all = np.concatenate([X_ref, X_fall, d.X_to[None]])
     why = _drop_clear(env, tl.q[catcher], pusher, q_p, X_all)
     rest = robot.arm(catcher).q_rest

@@ -915,10 +915,10 @@ def test_a_catcher_the_tumbling_mpc_refuses_gives_way_to_the_next(piano_analysis
     p_first = np.array([con["px"][first], con["py"][first], con["pz"][first]])
     real, refused = trajectory.tumble_mpc, []
 
-    def refuse(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp):
+    def refuse(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp, on_c=None):
         if np.allclose(p_O[1], p_first) or refused == ["all"]:
             return "the tumbling MPC fails at row 0 of segment 0 (refused here, before the release)"
-        return real(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp)
+        return real(mass, inertia, model, roll, theta, t, X_ref, on_p, p_O, n_O, mp, on_c)
 
     monkeypatch.setattr(trajectory, "tumble_mpc", refuse)
     _, stats = trajectory.compute(scene, piano_analysis, plan, trajectory.Params())
@@ -926,7 +926,9 @@ def test_a_catcher_the_tumbling_mpc_refuses_gives_way_to_the_next(piano_analysis
     assert stats["tumbles"][0]["catch_contact"] != first
     refused.append("all")
     _, stats = trajectory.compute(scene, piano_analysis, plan, trajectory.Params())
+    # ... and so is the drop it then tries (the same MPC, the pusher alone): both reasons are given.
     assert stats["status"] == "mpc_infeasible" and f"contact {first}: the tumbling MPC fails" in stats["reason"]
+    assert "no drop either: the tumbling MPC fails" in stats["reason"]
 
 
 def test_catch_candidates_are_those_the_catcher_reaches_at_the_start_and_the_release(tmp_path):
