@@ -280,7 +280,8 @@ class Params:
         < 0.01 rad in that time); the posture gains, which depend on the mass matrix alone, every 4
         refreshes. Gravity, Coriolis and the errors are refreshed every step.
     object_margin : Bullet collision margin of the object's hulls (m).
-    fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg).
+    fall_tilt_deg : the object fell when its up axis deviates from the plan's by more than this (deg;
+        in a tumble from the nearest pose of its planned roll, :func:`path_tilt`).
     fall_distance : ... or when its CoM is off the table where the plan's is more than ``success_pos``
         inside its edge, or this far (m) from the plan's overhanging one (USP) or on the edge
         (:func:`off_the_table`).
@@ -1267,7 +1268,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     ``final_yaw_error_deg`` to ``X_WO_goal``; the same to the plan's last pose,
     ``final_plan_position_error`` and ``final_plan_yaw_error_deg`` (the physics alone, when a partial
     plan stops short of the goal); ``max_com_deviation`` (m) and ``max_rotation_deviation_deg``
-    from the planned object path; ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
+    from the planned object path; ``max_tilt_deviation_deg`` (:func:`path_tilt`); ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
     the support edge over tumble rows);
     the support's slip per stretch and the worst (:func:`_slip_metrics`);
     ``max_penetration`` (m); the force bound's figures (``force_bound``, ``max_ball_force`` averaged
@@ -1747,6 +1748,20 @@ def off_the_table(scene, com, com_plan, com_error, fall_distance: float, edge_ba
         | (com[:, 2] < 0.0)
 
 
+def path_tilt(plan: Plan, X_WO: np.ndarray) -> np.ndarray:
+    """Per row, the angle (rad) between the object's up axis in the executed poses ``X_WO (T, 4, 4)``
+    and in the plan's: the same row's, but in a tumble the nearest of that tumble's planned poses. A
+    roll follows its path at gravity's pace, not the plan's clock (a drop tips early when its CoM
+    lies off the nominal one), so an object on the planned roll ahead of time or behind has not
+    fallen; one that leaves the roll, rolls back or goes beyond it has."""
+    up, up_plan = X_WO[:, 2, :3], plan.X_WO[:, 2, :3]  # world z seen in O
+    cos = np.sum(up * up_plan, axis=1)
+    for s, e in _stretches(plan):
+        if plan.kind[s] == "tumble":
+            cos[s:e] = (up[s:e] @ up_plan[s:e].T).max(axis=1)
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
 def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collisions) -> dict:
     """The deterministic metrics of :func:`simulate` from the log and the collisions seen."""
     X_end = se3.matrix_from_columns({c: log[c][-1:] for c in se3.POSE_COLUMNS})[0]
@@ -1755,7 +1770,7 @@ def _metrics(plan: Plan, log, X_WO_goal, com_O, scene, params: Params, collision
     yaw = float(se3.yaw_of(X_end[:3, :3] @ X_WO_goal[:3, :3].T))
     X_all = se3.matrix_from_columns({c: log[c] for c in se3.POSE_COLUMNS})
     com_all = se3.transform_points(X_all, com_O)
-    tilt = float(np.degrees(log["tilt_error"].max()))
+    tilt = float(np.degrees(path_tilt(plan, X_all).max()))
     com_plan = se3.transform_points(plan.X_WO, com_O)
     off_table = off_the_table(scene, com_all, com_plan, log["com_error"], params.fall_distance, params.success_pos)
     fell_reason = ""
