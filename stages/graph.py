@@ -285,11 +285,12 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
             pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], p_g[ga]) + Xm[:, None, :3, 3]
             nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], n_g[ga])
             p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
+            mu = params.friction_safety * scene.object.friction
             res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
                                      pts, nrm, None, float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2),
-                                     stability.Params(mu_eef=params.friction_safety * scene.object.friction,
-                                                      mu_table=params.friction_safety * scene.table.friction,
-                                                      f_max=params.force_safety * scene.robot.max_eef_force),
+                                     stability.Params(mu_eef=mu, mu_table=params.friction_safety * scene.table.friction,
+                                                      f_max=stability.normal_bound(
+                                                          params.force_safety * scene.robot.max_eef_force, mu)),
                                      compute_margin=False)
             status[live2[~res.stable]] = "unstable"
     return status

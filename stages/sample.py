@@ -426,9 +426,10 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     prm_hold = stability.Params(mu_eef=params.hold_eef_friction * scene.object.friction,
                                 mu_table=params.hold_friction_safety * scene.table.friction,
                                 f_max=scene.robot.max_eef_force)
-    prm_pivot = stability.Params(mu_eef=params.pivot_friction_safety * scene.object.friction,
-                                 mu_table=params.pivot_friction_safety * scene.table.friction,
-                                 f_max=params.pivot_force_safety * scene.robot.max_eef_force)
+    mu_pivot = params.pivot_friction_safety * scene.object.friction
+    prm_pivot = stability.Params(mu_eef=mu_pivot, mu_table=params.pivot_friction_safety * scene.table.friction,
+                                 f_max=stability.normal_bound(params.pivot_force_safety * scene.robot.max_eef_force,
+                                                              mu_pivot))
     corners = poses.pivot_corners(model, params.corner_cluster, scene.planner.tilt)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,

@@ -131,6 +131,13 @@ class Params:
             raise PivotError(f"stability Params: invalid {', '.join(bad)}")
 
 
+def normal_bound(magnitude: float, mu: float) -> float:
+    """The bound (N) on an EEF's normal force that keeps its whole force, normal plus friction inside
+    the friction cone of coefficient ``mu``, within ``magnitude`` (N): ``magnitude / sqrt(1 + mu^2)``,
+    the :class:`Params` ``f_max`` of a test whose ball force is judged by its magnitude."""
+    return float(magnitude / np.hypot(1.0, mu))
+
+
 @dataclass(frozen=True)
 class StabilityResult:
     """Per-candidate stability verdicts.
