@@ -1268,7 +1268,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     ``final_yaw_error_deg`` to ``X_WO_goal``; the same to the plan's last pose,
     ``final_plan_position_error`` and ``final_plan_yaw_error_deg`` (the physics alone, when a partial
     plan stops short of the goal); ``max_com_deviation`` (m) and ``max_rotation_deviation_deg``
-    from the planned object path; ``max_tilt_deviation_deg`` (:func:`path_tilt`); ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
+    from the planned object path; ``max_tilt_deviation_deg`` (:func:`path_tilt`);
+    ``max_pivot_slip`` (m, over pivot rows) and ``max_edge_slip`` (m, of
     the support edge over tumble rows);
     the support's slip per stretch and the worst (:func:`_slip_metrics`);
     ``max_penetration`` (m); the force bound's figures (``force_bound``, ``max_ball_force`` averaged
