@@ -60,15 +60,17 @@ def test_grasps_are_reached_collision_free_and_stable(ctx):
                                  np.full(len(i), scene.planner.tilt))
     cl, cr = gr["contact_left"][i], gr["contact_right"][i]
     gp = graph.Params()
+    # Each ball's whole force (normal and friction) within the force the plan's MPC check allows.
+    mu = gp.friction_safety * scene.object.friction
+    f_max = gp.force_safety * scene.robot.max_eef_force / np.sqrt(1.0 + mu**2)
     holds = np.ones(len(i), bool)
     for Xt in (Xi, T @ Xi):  # the start of the tilt, the full tilt
         pts = np.stack([se3.transform_points(Xt, p[cl]), se3.transform_points(Xt, p[cr])], 1)
         nrm = -np.stack([se3.rotate_vectors(Xt, n[cl]), se3.rotate_vectors(Xt, n[cr])], 1)
         res = stability.evaluate(scene.object.mass, se3.transform_points(Xt, model.com), p0[:, None], None, pts,
                                  nrm, None, float(np.linalg.norm(tables["summary"]["extents"]) / 2),
-                                 stability.Params(mu_eef=gp.friction_safety * scene.object.friction,
-                                                  mu_table=gp.friction_safety * scene.table.friction,
-                                                  f_max=gp.force_safety * scene.robot.max_eef_force),
+                                 stability.Params(mu_eef=mu, mu_table=gp.friction_safety * scene.table.friction,
+                                                  f_max=f_max),
                                  compute_margin=False)
         holds &= res.stable
     on = np.all(np.abs(p0[:, :2]) <= np.asarray(scene.table.size) / 2, axis=1)
