@@ -108,8 +108,9 @@ class Params:
     #: nominal and perturbed. On Exp. 1's graph the change's median is 35 deg, its 99th percentile 65.
     max_eef_normal_change: float = np.radians(75.0)
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
-    #: (``stages.plan.Params``: 0.8 of the friction, 0.9 of the force bound), so that the search
-    #: does not find pivots its MPC check then refuses.
+    #: (``stages.plan.Params``: 0.8 of the friction, each ball's whole force within 0.9 of the force
+    #: bound, ``stability.normal_bound``), so that the search does not find pivots its MPC check then
+    #: refuses.
     friction_safety: float = 0.8
     force_safety: float = 0.9
     #: Worker threads of the collision checks, each taking a slice of the configurations (numpy

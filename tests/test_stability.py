@@ -215,6 +215,14 @@ def test_pinch_margin_shrinks_with_f_max_and_vanishes_at_the_limit(route):
     assert not below.stable[0] and below.margin[0] == 0.0
 
 
+def test_normal_bound_keeps_the_whole_force_in_the_pyramid_within_the_magnitude():
+    """3-4-5: with mu = 0.75 a normal force of 40 N and friction at the cone's edge (30 N) make 50 N."""
+    assert stability.normal_bound(50.0, 0.75) == pytest.approx(40.0)
+    assert stability.normal_bound(50.0, 0.0) == 50.0
+    n = stability.normal_bound(45.0, 0.4)
+    assert np.hypot(n, 0.4 * n) == pytest.approx(45.0) and n < 45.0
+
+
 def test_cube_on_one_vertex_falls_without_eef():
     kw, p = pivot_scene()
     kw.update(eef_pts_W=np.zeros((1, 0, 3)), eef_normals_W=np.zeros((1, 0, 3)), eef_mask=np.zeros((1, 0), bool))
