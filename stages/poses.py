@@ -813,10 +813,13 @@ def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 
     """Roll the object from face ``g`` (the face it rests on at ``X``, as :func:`roll_segments` finds
     it) over hull edge ``e`` until it rests on a stable face: the same roll the motion stage follows.
     Returns ``(X_WO, face, total angle)`` or None when no stable face comes within ``max_faces`` faces
-    or half a turn."""
+    or half a turn, or the roll comes back onto face ``g`` (it rocks over one edge and falls back
+    over another: no tumble, and a displacement no contact controls)."""
     try:
         roll = roll_segments(model, X, *(int(v) for v in model.edges[e]), max_faces=max_faces)
     except InputError:
+        return None
+    if roll.face == g:
         return None
     return roll.X_end, roll.face, float(roll.angle.sum())
 
@@ -858,9 +861,9 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
     """Roll the object from its resting face over hull edge ``(v0, v1)`` until it rests on a stable face.
 
     The same roll as the pose sampler's (:func:`_tumble`): over the edge onto the adjacent hull face;
-    while that face is not stable (a narrow face between a foot and the body), over the edge of it
-    beyond which the CoM lies. Raises ``InputError`` when ``(v0, v1)`` is not an edge of the resting
-    face or no stable face comes within ``max_faces`` faces or half a turn.
+    while that face is not stable (a narrow face between a foot and the body, a facet of a rounded
+    body), over the next edge of it (:func:`_next_edge`). Raises ``InputError`` when ``(v0, v1)`` is
+    not an edge of the resting face or no stable face comes within ``max_faces`` faces or half a turn.
     """
     down = se3.rotate_vectors(X_WO, model.normals)[:, 2]
     g = int(np.argmin(down))  # the resting face: outward normal straight down
@@ -891,24 +894,35 @@ def roll_segments(model, X_WO: np.ndarray, v0: int, v1: int, max_faces: int = 16
             return Roll(X_seg=np.stack([s[0] for s in segs]), p_axis=np.stack([s[1] for s in segs]),
                         a_axis=np.stack([s[2] for s in segs]), angle=np.array([s[3] for s in segs]),
                         edge=np.array([s[4] for s in segs], dtype=np.int64), face=g, X_end=_settle(model, X, g))
-        com = se3.transform_points(X, model.com)
-        centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)
-        best, best_d = -1, 0.0
-        for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)):  # the face's few edges
-            if e2 == e:
-                continue
-            q = se3.transform_points(X, model.vertices[model.edges[e2]])
-            d = q[1, :2] - q[0, :2]
-            nrm = np.array([d[1], -d[0]]) / max(np.linalg.norm(d), 1e-12)
-            if np.dot(centre[:2] - q[0, :2], nrm) > 0:
-                nrm = -nrm  # outward from the face
-            beyond = float(np.dot(com[:2] - q[0, :2], nrm))
-            if beyond > best_d:
-                best, best_d = e2, beyond
-        if best < 0:
+        e = _next_edge(model, X, g, e)
+        if e < 0:
             break
-        e = int(best)
     raise InputError(f"tumble over ({v0}, {v1}): no stable face within {max_faces} faces or half a turn")
+
+
+def _next_edge(model, X: np.ndarray, g: int, e: int) -> int:
+    """The hull edge of face ``g`` (on the table at ``X``) a roll that came over edge ``e`` goes on
+    over: the one the CoM lies beyond, farthest (it topples over it alone); with none, the one
+    straight ahead, whose outward normal is nearest the roll's direction (away from ``e``): the CoM
+    is still over the face or back over ``e``, so the pusher keeps turning the object, as it rolls a
+    rounded body over the facets of its hull. -1 when no edge lies ahead. Plan view, W."""
+    es = np.array([e2 for e2 in np.flatnonzero((model.edge_faces == g).any(axis=1)) if e2 != e], dtype=np.int64)
+    if not len(es):
+        return -1
+    centre = se3.transform_points(X, model.vertices[np.asarray(model.support[g])]).mean(axis=0)[:2]
+
+    def outward(ids):  # (k,) edges -> first vertex (k, 2), unit outward normal (k, 2)
+        q = se3.transform_points(X, model.vertices[model.edges[ids]])[..., :2]
+        d = q[:, 1] - q[:, 0]
+        n = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+        return q[:, 0], np.where((np.einsum("ij,ij->i", centre - q[:, 0], n) > 0)[:, None], -n, n)
+
+    q0, nrm = outward(es)
+    beyond = np.einsum("ij,ij->i", se3.transform_points(X, model.com)[:2] - q0, nrm)
+    if beyond.max() > 0.0:
+        return int(es[np.argmax(beyond)])
+    ahead = -outward(np.array([e]))[1][0] @ nrm.T
+    return int(es[np.argmax(ahead)]) if ahead.max() > 0.0 else -1
 
 
 #: How far (rad) a roll over a hull edge may leave the next face off the table's plane: the hull's

@@ -97,6 +97,51 @@ def test_a_roll_onto_a_face_a_little_off_its_edge_settles_flat_on_it(off_deg, la
     assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) <= off_deg + 1e-6
 
 
+def chamfered_box(size=(0.3, 0.2, 0.2), c=0.02):
+    """A box whose four edges along y are cut by 45 deg chamfers ``c`` wide (m): a prism of octagonal
+    section, every chamfer face too narrow to stand on."""
+    hx, hz = size[0] / 2, size[2] / 2
+    sec = [(hx - c, -hz), (hx, -hz + c), (hx, hz - c), (hx - c, hz), (-hx + c, hz), (-hx, hz - c),
+           (-hx, -hz + c), (-hx + c, -hz)]
+    pts = [(x, y, z) for x, z in sec for y in (-size[1] / 2, size[1] / 2)]
+    return trimesh.convex.convex_hull(np.array(pts))
+
+
+def test_a_roll_over_a_face_the_com_falls_back_from_is_pushed_on_over_its_far_edge():
+    # The chamfered box rolled over a bottom edge along y turns 45 deg onto the chamfer, where its CoM
+    # lies back over that edge (0.13 m in, 0.10 m up: -0.13 cos 45 + 0.10 sin 45 < 0); a pusher keeps
+    # turning it over the chamfer's far edge, 45 deg more, onto the side face: 90 deg in two segments.
+    model = box_model((0.3, 0.2, 0.2), chamfered_box())
+    X0, g = upright(model)
+    assert np.sum(~model.stable) == 4  # the four chamfers tip; the six faces of the box stand
+    bottom_y = [e for e in np.flatnonzero((model.edge_faces == g).any(axis=1))
+                if abs(np.diff(model.vertices[model.edges[e]][:, 1])[0]) > 0.1]
+    assert len(bottom_y) == 2
+    for e in bottom_y:
+        roll = poses.roll_segments(model, X0, *model.edges[e])
+        np.testing.assert_allclose(np.degrees(roll.angle), [45.0, 45.0], atol=1e-9)
+        side = se3.rotate_vectors(roll.X_end, model.normals[roll.face])
+        np.testing.assert_allclose(side, [0.0, 0.0, -1.0], atol=1e-12)
+        x_side = np.sign(se3.transform_points(X0, model.vertices[model.edges[e]])[0, 0])
+        assert abs(model.normals[roll.face] @ [x_side, 0.0, 0.0]) == pytest.approx(1.0)  # that x side
+        # The second segment turns about the chamfer's far edge, which is on the table as it starts.
+        far = se3.transform_points(roll.X_seg[1], model.vertices[roll.edge[1]])
+        assert np.abs(far[:, 2]).max() < 1e-12
+        assert poses._tumble(model, X0, g, e)[1] == roll.face
+
+
+def test_a_roll_that_comes_back_onto_its_own_face_is_no_tumble(monkeypatch):
+    # A roll that rocks onto a narrow face and falls back over another edge lands where it began.
+    model = box_model()
+    X0, g = upright(model)
+    e = int(np.flatnonzero((model.edge_faces == g).any(axis=1))[0])
+    assert poses._tumble(model, X0, g, e) is not None
+    roll = poses.roll_segments(model, X0, *model.edges[e])
+    monkeypatch.setattr(poses, "roll_segments", lambda *a, **k: poses.Roll(
+        roll.X_seg, roll.p_axis, roll.a_axis, roll.angle, roll.edge, g, roll.X_end))
+    assert poses._tumble(model, X0, g, e) is None
+
+
 def test_overhang_at_the_table_edge_is_sp_until_the_com_passes_the_edge_then_usp():
     model = box_model()  # footprint 0.2 (x) x 0.3 (y)
     # Footprint x in [0.15, 0.35] on a table ending at x = 0.3: the table edge cuts the support, but the
