@@ -171,7 +171,7 @@ def test_scene_on_its_back_names_the_first_barrier_of_the_nearest_route_to_the_g
     reaches pivots onto a pose with no grasp (the cause), and the tumbles that would lead on are out of
     the pushing arm's reach (counted among the links leading on)."""
     p = plan_scene(piano, "push", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
-                                     "planner.max_poses": 40})
+                                     "planner.max_poses": 30})
     d = p["diagnosis"]
     assert p["reason"] == "no path in the graph: the poses that lead on have no grasp"
     assert d["route_link"]["class"] == "next_pose_has_no_grasp"
