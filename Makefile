@@ -160,8 +160,11 @@ browser:
 	      > /dev/null 2>&1 || echo "make: chromium could not be installed; the browser test will be skipped"; \
 	  else echo "make: no chromium and no apt-get as root; the browser test will be skipped"; fi; fi
 
+# Tests run in TEST_WORKERS processes (pytest-xdist); the reference chains' tests share one (their
+# xdist_group), so each chain is built once. TEST_WORKERS=0 runs them in this process.
+TEST_WORKERS ?= 2
 test: $(INSTALLED) lint browser ## install, lint and run the whole test suite
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 bench: $(INSTALLED) ## print each stage's time beside its target and the paper's figure
 	$(BIN)/python bench/run.py

@@ -42,7 +42,8 @@ from stages import artifacts, graph, plan, sample, se3
 from stages.objectmodel import load_object_model
 from stages.scene import PlacementSpec, load_scene
 
-pytestmark = pytest.mark.slow
+# One xdist worker runs every test of the reference chains, built once per session (conftest).
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("reference")]
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "data" / "scenes"

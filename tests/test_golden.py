@@ -10,7 +10,8 @@ import pytest
 
 from tests.golden import GOLDEN, SCENES, compare, digest_chain
 
-pytestmark = pytest.mark.slow
+# One xdist worker runs every test of the reference chains, built once per session (conftest).
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("reference")]
 
 
 @pytest.mark.parametrize("scene", SCENES)
