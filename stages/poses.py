@@ -86,15 +86,13 @@ class Params:
     #: A lattice grown from the goal as well (``goal_tree_share`` of ``max_poses`` kept poses more),
     #: joined to the start's by up to ``tree_joins`` closed-form pivot sequences between the
     #: ``tree_candidates`` nearest pairs (a heading difference weighs ``yaw_weight`` m per rad); 0:
-    #: the start's lattice alone. The nearest pairs often share one neighbourhood, where no three
-    #: pivots within ``goal_max_angle`` join (a rounded base has few, close corners), so a few hundred
-    #: are tried: each is one closed-form solve.
+    #: the start's lattice alone.
     goal_tree_share: float = 0.25
     tree_joins: int = 12
     #: Each closed-form join is also made avoiding each corner it used, up to this many corners
     #: (:func:`_connect`): which corners a grasp holds is known only after the lattice.
     join_alternatives: int = 3
-    tree_candidates: int = 400
+    tree_candidates: int = 80
     yaw_weight: float = 0.2
     #: After its ``max_poses`` breadth first and the goal's joins, the start's lattice grows on from its
     #: unexpanded poses on the start's and the goal's placements by ``goal_reach_share`` of ``max_poses``
