@@ -19,7 +19,9 @@ them in this order; ``causes`` lists every one that holds and ``cause`` is the f
    the two poses (a pivot keeps its grasp, §5.1, and the two have none in common); or by the
    primitive of most of the refused edges between them, ``pivot_rejected``, ``tumble_rejected`` or
    ``pusher_out_of_reach`` (an edge removed by backtracking counts with its motion-level reason, one
-   an ablation drops as ``ablation``). The cause is the class of the first link that the nearest
+   an ablation drops as ``ablation``), or ``grasp_not_reached`` when every edge between them passes
+   but from grasps of the reached pose that the start does not reach (nor a regrasp there leads
+   to). The cause is the class of the first link that the nearest
    lattice route from the reached poses to the goal takes out of them (the first barrier on the way);
    all links are counted in ``links_leading_on``. With no such route, the primitive of most refused
    edges leading on from the reached nodes (USP regrasps, catches).
@@ -51,6 +53,7 @@ REASONS = {
     "regrasp_rejected": "the regrasps that lead on are rejected",
     "no_shared_grasp": "no grasp is shared with the next poses",
     "next_pose_has_no_grasp": "the poses that lead on have no grasp",
+    "grasp_not_reached": "the start reaches no grasp that leads on",
 }
 #: Reason families of a tumble whose pushing arm cannot reach or push.
 PUSHER_REASONS = ("ik_unreachable", "joint_limit", "no_pusher_contact")
@@ -154,8 +157,10 @@ def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -
 def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
     """The lattice links from a reached pose to one not reached, by why the search cannot take them:
     the primitive and reason family of most of the refused edges between the two poses
-    (``pivot:unstable``, ``tumble:ik_unreachable``, ...), or, with no edge between them,
-    ``next_pose_has_no_grasp`` or ``no_shared_grasp`` (a pivot keeps its grasp and they share none)."""
+    (``pivot:unstable``, ``tumble:ik_unreachable``, ...); ``<primitive>:grasp_not_reached`` when
+    every edge between them passes but starts from a grasp of ``p`` the start does not reach (nor
+    any regrasp there); with no edge between them, ``next_pose_has_no_grasp`` or
+    ``no_shared_grasp`` (a pivot keeps its grasp and they share none)."""
     pose_of = t.nodes["pose_id"]
     grasped = set(pose_of[t.nodes["kind"] == "grasp"].tolist())
     pa, pb = pose_of[t.edges["node_a"]], pose_of[t.edges["node_b"]]
@@ -168,10 +173,13 @@ def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray)
             if q in reached_poses:
                 continue
             edges = between.get((min(p, q), max(p, q)), [])
-            if edges:  # refused (else q would be reached): by what most of them are refused for
-                fam, n = np.unique([f"{t.edges['primitive'][e]}:{family(status[e])}" for e in edges],
+            refused = [e for e in edges if status[e] != "ok"]
+            if refused:  # by what most of them are refused for
+                fam, n = np.unique([f"{t.edges['primitive'][e]}:{family(status[e])}" for e in refused],
                                    return_counts=True)
                 why = str(fam[np.argmax(n)])
+            elif edges:  # every one passes, but from grasps at p that the start does not reach
+                why = f"{t.edges['primitive'][edges[0]]}:grasp_not_reached"
             else:
                 why = "no_shared_grasp" if q in grasped else "next_pose_has_no_grasp"
             out[why] = out.get(why, 0) + 1
@@ -204,6 +212,8 @@ def _cut_cause(t: Tables, L: nx.Graph, reached_poses: set, leads_on: dict, statu
         if ":" not in cls:
             return cls, facts
         prim, fam = cls.split(":")
+        if fam == "grasp_not_reached":
+            return "grasp_not_reached", facts
         return (tumble_cause({fam: 1}) if prim == "tumble" else f"{prim}_rejected"), facts
     if not leads_on:
         return "no_shared_grasp", facts

@@ -178,3 +178,15 @@ def test_scene_on_its_back_names_the_first_barrier_of_the_nearest_route_to_the_g
     assert d["links_leading_on"].get("tumble:ik_unreachable", 0) >= 1
     tumbles = d["leads_on_rejected"]["tumble"]
     assert tumbles.get("ik_unreachable", 0) + tumbles.get("joint_limit", 0) >= sum(tumbles.values()) / 2
+
+
+def test_a_route_whose_links_pass_from_grasps_the_start_does_not_reach_says_so(piano):
+    """The same task on 40 poses: the nearest route leaves the reached poses by a tumble whose edges
+    all pass, but from grasps of that pose the start reaches neither directly nor by a regrasp; no
+    edge of that link is refused, so no refusal may be named as its barrier."""
+    p = plan_scene(piano, "push40", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
+                                       "planner.max_poses": 40})
+    d = p["diagnosis"]
+    assert d["route_link"]["class"] == "tumble:grasp_not_reached" and d["cause"] == "grasp_not_reached"
+    assert p["reason"] == "no path in the graph: the start reaches no grasp that leads on"
+    assert not any(k.endswith(":ok") for k in d["links_leading_on"])
