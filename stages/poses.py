@@ -307,14 +307,14 @@ def build_lattice(model: ObjectModel, X_WO_start: np.ndarray, start_placement: i
     ``goal`` ``(X_WO (4, 4), placement)`` is joined to the lattice afterwards (``_insert_goal``).
     """
     lat = _Lattice(model, table_size, obstacles, params)
-    rows, add, corners = lat.rows, lat.add, lat.corners
+    rows, add = lat.rows, lat.add
     lat.share = {int(start_placement): 1.0} | ({int(goal[1]): 1.0} if goal is not None else {})
     first, _ = add(np.asarray(X_WO_start, dtype=float), int(start_placement), -1, "start", -1, (-1, -1), 0.0)
     popped = lat.grow([first], params.max_poses)  # breadth first, at most max_poses poses
     n_tree = len(rows)
     if goal is None:
         return lat
-    goal_id = lat.goal_id = _insert_goal(model, corners, rows, add, *goal, params)
+    goal_id = lat.goal_id = _insert_goal(lat, *goal, params)
     n_start = len(rows)
 
     def ok(lo: int, hi: int) -> list[int]:  # the kept poses of rows lo..hi - 1 but the goal
@@ -323,7 +323,7 @@ def build_lattice(model: ObjectModel, X_WO_start: np.ndarray, start_placement: i
     if goal_id >= 0 and params.goal_tree_share > 0:
         start_keys = np.array([r["key"] for r in rows[:n_tree] if r["status"] == "ok"], dtype=float)  # start first
         lat.grow([goal_id], int(np.ceil(params.goal_tree_share * params.max_poses)), toward=start_keys)
-        _join_trees(model, corners, rows, add, ok(0, n_start), [goal_id, *ok(n_start, len(rows))], params)
+        _join_trees(lat, ok(0, n_start), [goal_id, *ok(n_start, len(rows))], params)
     if goal_id >= 0 and params.goal_reach_share > 0:  # on from the unexpanded poses, A* toward the goal
         n_reach = len(rows)
         leaves = [i for i in ok(0, n_tree) if i not in popped]
@@ -331,8 +331,8 @@ def build_lattice(model: ObjectModel, X_WO_start: np.ndarray, start_placement: i
                  toward=np.array([rows[goal_id]["key"]], dtype=float), bias=params.goal_bias,
                  cost=_tree_costs(rows, params), only={int(start_placement), int(goal[1])})
         n_grown = len(rows)
-        _join_goal(model, corners, rows, add, goal_id, range(n_reach, n_grown), params)
-        _join_trees(model, corners, rows, add, ok(n_reach, n_grown), [goal_id, *ok(n_start, n_reach)], params)
+        _join_goal(lat, goal_id, range(n_reach, n_grown), params)
+        _join_trees(lat, ok(n_reach, n_grown), [goal_id, *ok(n_start, n_reach)], params)
     return lat
 
 
@@ -348,17 +348,17 @@ def extend_lattice(lat: _Lattice, start_side: list[int], goal_side: list[int], u
     ``budget`` kept poses, whose new poses are joined to the goal's side in turn. Which grasps a pose
     has is known only after the grasp refinement, so the sample stage alternates the two
     (``stages.sample``). Adds rows and links to ``lat``."""
-    model, rows, add, params = lat.model, lat.rows, lat.add, lat.params
+    rows, params = lat.rows, lat.params
     start_side, goal_side = [i for i in start_side if rows[i]["status"] == "ok"], list(goal_side)
     if not start_side or not goal_side:
         return
-    _join_trees(model, lat.corners, rows, add, start_side, goal_side, params, usable)
+    _join_trees(lat, start_side, goal_side, params, usable)
     n_grown = len(rows)
     only = {rows[start_side[0]]["g"], rows[goal_side[0]]["g"]}
     lat.grow(start_side, budget, toward=np.array([rows[i]["key"] for i in goal_side], dtype=float),
              bias=params.goal_bias, cost=_tree_costs(rows, params), only=only, usable=usable)
     grown = [i for i in range(n_grown, len(rows)) if rows[i]["status"] == "ok"]
-    _join_trees(model, lat.corners, rows, add, grown, goal_side, params, usable)
+    _join_trees(lat, grown, goal_side, params, usable)
 
 
 class _Lattice:
@@ -531,23 +531,25 @@ def describe_pose(model: ObjectModel, X: np.ndarray, g: int, table_size, obstacl
     return status, why
 
 
-def _insert_goal(model, corners, rows, add, X_goal, g_goal, params: Params) -> int:
+def _insert_goal(lat: _Lattice, X_goal, g_goal, params: Params) -> int:
     """Join the goal pose to the lattice (§5.3): by up to three pivots from the nearest kept poses on
     the goal's placement (``stages.connect``, the controllability of pivoting [18]), first from the
     nearest pose of each subtree (the poses pivoted from one tumble landing, or from the start), so
     that every way onto the goal's placement gets its chance. Returns the goal's pose id, or -1 when
     no sequence of kept poses reaches it."""
+    rows, add = lat.rows, lat.add
     goal, new = add(np.asarray(X_goal, dtype=float), int(g_goal), -1, "goal", -1, (-1, -1), 0.0)
     if not new or rows[goal]["status"] != "ok":
         return goal if rows[goal]["status"] == "ok" else -1
-    _join_goal(model, corners, rows, add, goal, range(len(rows)), params)
+    _join_goal(lat, goal, range(len(rows)), params)
     return goal
 
 
-def _join_goal(model, corners, rows, add, goal: int, among, params: Params) -> int:
+def _join_goal(lat: _Lattice, goal: int, among, params: Params) -> int:
     """Join pose ``goal`` by up to three pivots from the nearest kept poses ``among`` (row ids) on its
     placement, the nearest of each subtree first (:func:`_insert_goal`), until ``goal_connections``
     joins are made or ``goal_candidates`` poses were tried. Returns the joins made."""
+    model, rows = lat.model, lat.rows
     X_goal, g_goal = rows[goal]["X"], rows[goal]["g"]
     c_goal = se3.transform_points(X_goal, model.com)[:2]
     cand = [i for i in among if rows[i]["status"] == "ok" and rows[i]["g"] == g_goal and i != goal]
@@ -566,7 +568,7 @@ def _join_goal(model, corners, rows, add, goal: int, among, params: Params) -> i
     cand = firsts[: params.goal_candidates] + [i for i in cand[: params.goal_candidates] if i not in firsts]
     joined = 0
     for i in cand:  # a few dozen closed-form solves
-        joined += _connect(model, corners, rows, add, i, X_goal, g_goal, params) == goal
+        joined += _connect(lat, lat.corners, i, X_goal, g_goal, params) == goal
         if joined >= params.goal_connections:
             break
     return joined
@@ -600,7 +602,7 @@ def _step_cost(a: tuple, b: tuple, params: Params) -> float:
     return float(np.hypot(a[1] - b[1], a[2] - b[2]) + params.yaw_weight * dyaw)
 
 
-def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: Params,
+def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
                 usable: dict[int, np.ndarray] | None = None) -> int:
     """Join kept poses ``b`` (the goal and the lattice grown from it) to kept poses ``a`` (the start's
     lattice, or the part of it grown toward the goal) by up to three pivots (``stages.connect``)
@@ -613,6 +615,7 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
     graph search then picks among them, with the motion checks deciding). With ``usable`` (row id -> hull
     vertex ids its grasps hold), a join pivots only about the corners both its ends hold, where known.
     """
+    rows = lat.rows
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
     if not len(a) or not len(b):
         return 0
@@ -626,8 +629,8 @@ def _join_trees(model, corners, rows, add, a: list[int], b: list[int], params: P
         i, j = a[flat // len(b)], b[flat % len(b)]
         if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
             break
-        cs = _held(corners, rows[j]["g"], (int(i), int(j)), usable)
-        joined += _connect(model, cs, rows, add, int(i), rows[j]["X"], rows[j]["g"], params) == j
+        cs = _held(lat.corners, rows[j]["g"], (int(i), int(j)), usable)
+        joined += _connect(lat, cs, int(i), rows[j]["X"], rows[j]["g"], params) == j
     return joined
 
 
@@ -643,7 +646,7 @@ def _held(corners: list[np.ndarray], g: int, rows: tuple[int, ...], usable: dict
     return [*corners[:g], ids, *corners[g + 1:]]
 
 
-def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params: Params) -> int:
+def _connect(lat: _Lattice, corners, i: int, X_to: np.ndarray, g: int, params: Params) -> int:
     """Pivot from kept pose ``i`` to ``X_to`` on placement ``g`` by up to three closed-form pivots
     (``stages.connect``), adding the poses on the way; then by the best sequence that avoids each
     corner the first one used, in turn, up to ``join_alternatives`` more (which corners a grasp
@@ -651,17 +654,18 @@ def _connect(model, corners, rows, add, i: int, X_to: np.ndarray, g: int, params
     it). Returns the last kept pose the first sequence reached (``i`` when none, or when a pivot is
     too small to be kept apart from its parent)."""
     ids = corners[g]
-    first = _connect_via(model, rows, add, i, X_to, g, ids, params)
+    first = _connect_via(lat, i, X_to, g, ids, params)
     if first is None:
         return i
     used, end = first
     for c in used[: params.join_alternatives]:
-        _connect_via(model, rows, add, i, X_to, g, ids[ids != c], params)
+        _connect_via(lat, i, X_to, g, ids[ids != c], params)
     return end
 
 
-def _connect_via(model, rows, add, i: int, X_to: np.ndarray, g: int, ids: np.ndarray, params: Params):
+def _connect_via(lat: _Lattice, i: int, X_to: np.ndarray, g: int, ids: np.ndarray, params: Params):
     """:func:`_connect` over the corners ``ids`` only: ``(corners used, last kept pose)`` or None."""
+    model, rows, add = lat.model, lat.rows, lat.add
     if len(ids) == 0:
         return None
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
