@@ -1121,16 +1121,23 @@ def test_a_ball_force_above_the_bound_fails(pivot_case):
 def test_the_force_limiter_keeps_contact_transients_under_the_bound(pivot_case):
     """The scene's bound lowered to 20 N, the command clipped at 19 N (``force_margin`` 0.05): without
     the limiter's outer loop (``force_feedback`` 0) contact transients carry the sensed force past the
-    clip; with it the sensed force, raw and averaged, peaks lower."""
+    clip; with it the sensed force peaks lower, averaged, and raw once the ball presses (the ten
+    highest logged rows after one with force; measured 0.25 N lower). The touch-down impulse itself
+    comes before any reading the loop could act on: its raw peak is no higher, and may be the same."""
     d = pivot_case["scene"].to_dict()
     d["robot"]["max_eef_force"] = 20.0
     scene = scene_from_dict(d, SCENE_PATH)
-    runs = [_run(pivot_case, scene=scene, params=replace(pivot_case["params"], force_margin=0.05,
-                                                         force_feedback=g)).metrics for g in (0.0, 1.0)]
-    bare, limited = runs
-    assert bare["max_ball_force_step"] > 19.0 * 1.02
-    assert limited["max_ball_force_step"] < bare["max_ball_force_step"]
-    assert limited["max_ball_force"] < bare["max_ball_force"] and limited["within_force_bound"]
+
+    def pressing_peak(log):
+        f = np.stack([np.asarray(log["left_force"]), np.asarray(log["right_force"])])
+        return float(np.sort(f[:, 1:][f[:, :-1] > 0.5])[-10:].mean())
+
+    bare, limited = (_run(pivot_case, scene=scene, params=replace(pivot_case["params"], force_margin=0.05,
+                                                                 force_feedback=g)) for g in (0.0, 1.0))
+    assert bare.metrics["max_ball_force_step"] > 19.0 * 1.02
+    assert limited.metrics["max_ball_force_step"] <= bare.metrics["max_ball_force_step"]
+    assert pressing_peak(limited.log) < pressing_peak(bare.log)
+    assert limited.metrics["max_ball_force"] < bare.metrics["max_ball_force"] and limited.metrics["within_force_bound"]
 
 
 def test_force_clip_lowers_the_next_command_by_the_sensed_excess():
