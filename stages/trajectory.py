@@ -61,7 +61,10 @@ alone turns the object to its tip (``stages.graph.tip_angle``) and reaches it at
 acceleration (:func:`drop_profile`; the tumbling MPC with the pusher only and no least force, which
 fades to nothing there), and the object falls on from that rate as gravity alone turns it
 (:func:`_free_fall`), a fall physics follows to a few degrees, where one from rest past the tip runs
-ahead of any plan.
+ahead of any plan. A drop is planned only where that fall is the whole story: about one edge onto
+its face (a fall that lands on a facet and rolls on over its edge rocks on the crease, which no row
+models), with its edge held by the table's friction, slipping at most ``drop_slip`` before it lands
+and never lifting off (:func:`fall_slip`, a planar rigid body under Coulomb friction).
 
 The catching contact in SP is chosen here, deterministically: contacts on the landing face (outward
 normal within ``catch_cone`` of the landing direction) whose ball the catcher reaches at the start and
@@ -142,6 +145,8 @@ class TumbleParams:
     catch_candidates: int = 8
     #: Where the catcher's ball has rolled to at the end of the catch must lie this far inside its face (m).
     roll_margin: float = 0.005
+    #: A drop whose edge would slide further than this as the object falls from the tip is refused (m).
+    drop_slip: float = 0.005
     #: The object rests this long after landing before the arms leave (s).
     settle: float = 1.0
     #: A placing catcher backs off this far along its contact normal (m), in ``retreat_time`` s.
@@ -1083,6 +1088,16 @@ def _plan_drop(env: _Env, tl: _Timeline, d: _Drop, no_catch: TumbleError) -> dic
 
     th_tip = tip_angle(env.model, d.roll)
     t_prof, theta, rate = drop_profile(d.roll, th_tip, P, dt)
+    s_id = d.roll.segment_of(th_tip)
+    if s_id + 1 < len(d.roll.angle):
+        more = np.degrees(d.roll.angle[s_id + 1:].sum())
+        raise fail(f"it would land on a facet and roll on over its edge ({more:.1f} deg more), a fall about a "
+                   "second edge the plan does not model")
+    fall = fall_slip(env.scene.object.mass, env.inertia, env.model.com, d.roll, th_tip, rate, env.mp.g,
+                     env.mp.mu_table)
+    if fall.lifted or fall.slip > P.drop_slip:
+        raise fail(f"its edge would {'lift off' if fall.lifted else f'slide {fall.slip * 1e3:.1f} mm'} as it "
+                   f"falls from the tip (friction {env.mp.mu_table:.2f})")
     X_ref = d.roll.poses(theta)
     T = len(theta)
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
@@ -1167,6 +1182,64 @@ def tumble_mpc(mass, inertia, model, roll: Roll, theta, t_prof, X_ref, on_p, p_O
         X_mpc[rows], f_mpc[rows], f_tab[rows] = res.X_WO, res.f_eef_W, res.f_table_W
         errs.append(float(np.max(res.tracking_error)))
     return X_mpc, f_mpc, f_tab, errs
+
+
+class FallSlip(NamedTuple):
+    """How a fall from the tip goes on a table of friction ``mu`` (:func:`fall_slip`)."""
+
+    slip: float    # how far the edge has slid on the table when the object lands (m)
+    lifted: bool   # the edge left the table (its normal force vanished) before the landing
+
+
+def fall_slip(mass: float, I_com_O: np.ndarray, com_O: np.ndarray, roll: Roll, th_c: float, rate: float,
+              g: float, mu: float, dt: float = 2e-4) -> FallSlip:
+    """The fall about the roll's edge from ``th_c`` (rad), turning at ``rate`` (rad/s), onto the face it
+    reaches, with the edge on the table under Coulomb friction ``mu``: sticking (the rotation about a
+    fixed edge) while the reaction lies in the friction cone, sliding (friction ``mu N`` against the
+    slip) when not; a planar rigid body (the plane normal to the edge, CoM lever and inertia about
+    the edge's direction), integrated by semi-implicit Euler every ``dt`` s; stops at a lift-off.
+
+    Why: :func:`_free_fall` plans the fall with the edge fixed; an edge that slides (a falling ladder's
+    foot) or lifts off lands the object off its plan (§5.2.2)."""
+    s_id = roll.segment_of(th_c)
+    fall = float(np.cumsum(roll.angle)[s_id]) - th_c
+    X = roll.poses([th_c])[0]
+    a, z = roll.a_axis[s_id], np.array([0.0, 0.0, 1.0])
+    u = np.cross(a, z) / np.linalg.norm(np.cross(a, z))               # horizontal, normal to the edge
+    rho = X[:3, :3] @ com_O + X[:3, 3] - roll.p_axis[s_id]
+    rho0 = np.array([rho @ u, rho @ z])                                # edge to CoM in the (u, z) plane
+    i_c = float(a @ X[:3, :3] @ I_com_O @ X[:3, :3].T @ a)            # about the CoM, along the edge
+    sgn = float(np.cross(a, u) @ z)                                    # a x u = sgn z, u x z = sgn a
+    phi, w, v, x = 0.0, rate, 0.0, 0.0
+    for _ in range(int(10.0 / dt)):  # ten seconds of fall: from rest at the very tip it never starts
+        if phi >= fall:
+            break
+        c, s = np.cos(sgn * phi), np.sin(sgn * phi)
+        r = np.array([c * rho0[0] - s * rho0[1], s * rho0[0] + c * rho0[1]])
+        ar = sgn * np.array([-r[1], r[0]])                             # a x r in (u, z)
+        # Unknowns (phi'', N, F): m (phi'' ar - w^2 r) = (F, N - m g); i_c phi'' = torque of (F, N) at -r.
+        A = np.array([[mass * ar[0], 0.0, -1.0], [mass * ar[1], -1.0, 0.0],
+                      [i_c, sgn * r[0], -sgn * r[1]]])
+        b = np.array([mass * w * w * r[0], mass * w * w * r[1] - mass * g, 0.0])
+        sliding = abs(v) > 1e-9
+        if not sliding:
+            acc, n_f, f_t = np.linalg.solve(A, b)
+            sliding = abs(f_t) > mu * n_f
+            sigma = np.sign(f_t)
+        if sliding:
+            sigma = -np.sign(v) if abs(v) > 1e-9 else sigma
+            # Unknowns (phi'', N, x''): the edge slides along u, friction sigma mu N.
+            A2 = np.array([[mass * ar[0], -sigma * mu, mass], [mass * ar[1], -1.0, 0.0],
+                           [i_c, sgn * (r[0] - sigma * mu * r[1]), 0.0]])
+            acc, n_f, x_acc = np.linalg.solve(A2, b)
+            v_new = v + x_acc * dt
+            v = 0.0 if v != 0.0 and np.sign(v_new) != np.sign(v) else v_new
+        if n_f <= 0.0:
+            return FallSlip(abs(x), True)
+        w += acc * dt
+        phi += w * dt
+        x += v * dt
+    return FallSlip(abs(x), False)
 
 
 def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float, rate: float = 0.0) -> np.ndarray:
