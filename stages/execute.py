@@ -695,9 +695,10 @@ def with_release(plan: Plan, mesh: trimesh.Trimesh, robot, params: Params) -> Pl
 
     When the plan's last row has a ball on the object: a pause of ``ramp_time`` with the contact flags
     still on (the squeeze and the feed-forward ramp out, :func:`_contact_weights`, the object still),
-    then each touching ball backs off ``retreat_distance`` (m) along the outward normal at its
-    contact (minimum jerk, ``retreat_time`` s; the joints by :meth:`Robot.ik_trajectory` from the
-    last planned ones, so the joint tracking that takes over after the contact agrees with it; an arm
+    then each touching ball backs off ``retreat_distance`` (m) along :func:`retreat_direction`, the
+    outward normal at its contact unless that leads into a concave corner (minimum jerk,
+    ``retreat_time`` s; the joints by :meth:`Robot.ik_trajectory` from the last planned ones, so
+    the joint tracking that takes over after the contact agrees with it; an arm
     whose IK fails stays where it is, and the run then fails ``released``). Then ``settle_time`` s
     more of the last state, over which the object's rest is judged. The planned object pose stays
     the plan's last; the primitive id is the last plus one. Rows keep the plan's spacing.
@@ -717,7 +718,8 @@ def with_release(plan: Plan, mesh: trimesh.Trimesh, robot, params: Params) -> Pl
         for a, arm in enumerate(("left", "right")):
             if not last[a]:
                 continue
-            path = plan.p_ball[-1, a] + s * params.retreat_distance * out[a]  # (n_back, 3)
+            d = retreat_direction(mesh, plan.X_WO[-1], plan.p_ball[-1, a], out[a], params.retreat_distance)
+            path = plan.p_ball[-1, a] + s * params.retreat_distance * d  # (n_back, 3)
             ik = robot.ik_trajectory(arm, path, plan.q[-1, a])
             if ik.ok.all():
                 p_ball[back, a], q[back, a] = path, ik.q
@@ -729,6 +731,28 @@ def with_release(plan: Plan, mesh: trimesh.Trimesh, robot, params: Params) -> Pl
         X_WO=np.concatenate([plan.X_WO, np.repeat(plan.X_WO[-1:], n, axis=0)]),
         p_ball=np.concatenate([plan.p_ball, p_ball]), contact=np.concatenate([plan.contact, contact]),
         f_ball=np.concatenate([plan.f_ball, f]), q=np.concatenate([plan.q, q]), substeps=plan.substeps)
+
+
+def retreat_direction(mesh: trimesh.Trimesh, X_WO: np.ndarray, p_ball: np.ndarray, out: np.ndarray,
+                      distance: float, gain: float = 0.8) -> np.ndarray:
+    """Unit direction (W) in which a ball at ``p_ball (3,)`` (W) leaves the object at ``X_WO``.
+
+    The outward contact normal ``out (3,)`` (W) first; in a concave corner (an L-block's inner
+    corner) that normal points at the other wing, and a ball backed off along it ends a few mm from
+    the object (the run then fails ``not_retreated``). So the first of: the normal, the normal
+    tilted 45 deg up, straight up, the normal tilted 45 deg to either side, whose end point
+    ``distance`` (m) away lies at least ``gain * distance`` farther from the mesh than the ball
+    does; else the one that ends farthest (trimesh's closest-point query, in O)."""
+    up = np.array([0.0, 0.0, 1.0])
+    side = np.cross(up, out)
+    side = side / np.linalg.norm(side) if np.linalg.norm(side) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    cands = np.stack([out, out + up, up, out + side, out - side])
+    cands /= np.linalg.norm(cands, axis=1, keepdims=True)
+    pts = se3.transform_points(se3.invert(X_WO), np.vstack([p_ball, p_ball + distance * cands]))
+    _, dist, _ = trimesh.proximity.closest_point(mesh, pts)
+    gained = dist[1:] - dist[0]
+    good = np.flatnonzero(gained >= gain * distance)
+    return cands[good[0] if len(good) else int(np.argmax(gained))]
 
 
 def _min_jerk(s):

@@ -1263,3 +1263,33 @@ def test_perception_sees_the_pose_of_latency_ago_with_its_noise():
     again = execute._Perception(100, np.eye(4), execute.Params(seed=3))
     again.pose[:, 6] = 1.0
     np.testing.assert_array_equal(again.measure(50), X[0])
+
+
+def _l_block() -> trimesh.Trimesh:
+    """An L of two 0.2 m tall wings meeting at the inner corner (0.1, 0.1) (O)."""
+    a = trimesh.creation.box((0.3, 0.1, 0.2), trimesh.transformations.translation_matrix((0.15, 0.05, 0.1)))
+    b = trimesh.creation.box((0.1, 0.3, 0.2), trimesh.transformations.translation_matrix((0.05, 0.15, 0.1)))
+    return trimesh.util.concatenate([a, b])
+
+
+def test_retreat_direction_is_the_normal_on_an_open_face():
+    mesh = trimesh.creation.box((0.3, 0.3, 0.2))
+    d = execute.retreat_direction(mesh, np.eye(4), np.array([0.0, 0.17, 0.0]), np.array([0.0, 1.0, 0.0]), 0.03)
+    np.testing.assert_allclose(d, [0.0, 1.0, 0.0])
+
+
+@pytest.mark.parametrize("z", [0.19, 0.1])
+def test_retreat_direction_leaves_a_concave_corner(z):
+    """A ball in the L's inner corner on the wing whose normal points at the other wing: backing off
+    along the normal gains nothing (it stays 2 cm from that wing); the chosen direction, over the
+    corner near the top or diagonally out of it half-way down, gains half the distance or more."""
+    mesh, X = _l_block(), se3.make_transform(np.eye(3), np.array([0.4, -0.2, 0.0]))
+    p_O, out, dist = np.array([0.12, 0.12, z]), np.array([0.0, 1.0, 0.0]), 0.03
+    d = execute.retreat_direction(mesh, X, p_O + X[:3, 3], out, dist)
+
+    def gain(v):
+        _, r, _ = trimesh.proximity.closest_point(mesh, np.stack([p_O, p_O + dist * v]))
+        return r[1] - r[0]
+
+    assert gain(out) < 0.002
+    assert gain(d) > 0.5 * dist
