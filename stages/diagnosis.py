@@ -17,11 +17,11 @@ them in this order; ``causes`` lists every one that holds and ``cause`` is the f
 5. the grasp graph is cut: each lattice link from a pose the start reaches to one it does not is
    classed (:func:`link_classes`): ``next_pose_has_no_grasp``; ``no_shared_grasp``, no edge joins
    the two poses (a pivot keeps its grasp, §5.1, and the two have none in common); or by the
-   primitive of most of the refused edges between them, ``pivot_rejected``, ``tumble_rejected`` or
-   ``pusher_out_of_reach`` (an edge removed by backtracking counts with its motion-level reason, one
-   an ablation drops as ``ablation``), or ``grasp_not_reached`` when every edge between them passes
-   but from grasps of the reached pose that the start does not reach (nor a regrasp there leads
-   to). The cause is the class of the first link that the nearest
+   primitive of most of the refused edges between them when all are refused, ``pivot_rejected``,
+   ``tumble_rejected`` or ``pusher_out_of_reach`` (an edge removed by backtracking counts with its
+   motion-level reason, one an ablation drops as ``ablation``), or ``grasp_not_reached`` when one of
+   them passes but from a grasp of the reached pose that the start does not reach (nor a regrasp
+   there leads to). The cause is the class of the first link that the nearest
    lattice route from the reached poses to the goal takes out of them (the first barrier on the way);
    all links are counted in ``links_leading_on``. With no such route, the primitive of most refused
    edges leading on from the reached nodes (USP regrasps, catches).
@@ -157,9 +157,9 @@ def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -
 def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
     """The lattice links from a reached pose to one not reached, by why the search cannot take them:
     the primitive and reason family of most of the refused edges between the two poses
-    (``pivot:unstable``, ``tumble:ik_unreachable``, ...); ``<primitive>:grasp_not_reached`` when
-    every edge between them passes but starts from a grasp of ``p`` the start does not reach (nor
-    any regrasp there); with no edge between them, ``next_pose_has_no_grasp`` or
+    (``pivot:unstable``, ``tumble:ik_unreachable``, ...) when none passes; ``<primitive>:grasp_not_reached``
+    when one passes but starts from a grasp of ``p`` the start does not reach (nor any regrasp
+    there), whatever the others were refused for; with no edge between them, ``next_pose_has_no_grasp`` or
     ``no_shared_grasp`` (a pivot keeps its grasp and they share none)."""
     pose_of = t.nodes["pose_id"]
     grasped = set(pose_of[t.nodes["kind"] == "grasp"].tolist())
@@ -173,13 +173,13 @@ def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray)
             if q in reached_poses:
                 continue
             edges = between.get((min(p, q), max(p, q)), [])
-            refused = [e for e in edges if status[e] != "ok"]
-            if refused:  # by what most of them are refused for
-                fam, n = np.unique([f"{t.edges['primitive'][e]}:{family(status[e])}" for e in refused],
+            passed = [e for e in edges if status[e] == "ok"]
+            if passed:  # one passes, but from a grasp (or free node) at p that the start does not reach
+                why = f"{t.edges['primitive'][passed[0]]}:grasp_not_reached"
+            elif edges:  # by what most of them are refused for
+                fam, n = np.unique([f"{t.edges['primitive'][e]}:{family(status[e])}" for e in edges],
                                    return_counts=True)
                 why = str(fam[np.argmax(n)])
-            elif edges:  # every one passes, but from grasps at p that the start does not reach
-                why = f"{t.edges['primitive'][edges[0]]}:grasp_not_reached"
             else:
                 why = "no_shared_grasp" if q in grasped else "next_pose_has_no_grasp"
             out[why] = out.get(why, 0) + 1

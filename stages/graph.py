@@ -37,6 +37,12 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   under the overhang beyond the table's edge and then holds the object alone,
   :func:`catch_candidates`; the candidates and their checks are in ``catches.parquet``, rejected ones
   with their reason, which the tumble edges into them carry).
+- **squeeze tumble** (a tumble, weight ``w_tumble``, directed, arm ``both``; ``stages.squeeze``):
+  grasp node → grasp node with the same contacts over a tumble link out of SP, into SP or USP: the
+  grasp itself rolls the object over the edge onto the landing face, both balls on it throughout
+  (where no pusher or catcher works, as when the object tips away from the robot). Checked by
+  :func:`check_squeeze_edges`: the roll lands on the link's pose, the two balls hold the object on
+  its edge at sampled angles (the stability LP), IK, collisions and ``eef_normal_angle`` along it.
 - **hand-over** (a regrasp, weight ``w_regrasp``, directed; :func:`handover_edges`): catch node →
   each grasp of its pose: the pusher takes its contact of the grasp while the catcher holds, then
   the catcher moves to its own while the pusher's ball holds alone (Fig. 18 e–f); or through a hold
@@ -49,13 +55,13 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from stages import artifacts, mpc, poses, provenance, se3, stability, stagelog
+from stages import artifacts, mpc, poses, provenance, se3, squeeze, stability, stagelog
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
@@ -96,6 +102,8 @@ class Params:
     #: A hand-over's hold (:func:`hold_candidates`): the pusher's ball on a face within ``catch_cone`` of
     #: straight up, over the table; this many per USP pose, farthest from the CoM first.
     hold_candidates: int = 8
+    #: Squeeze tumbles (``stages.squeeze``): timing and the angles of their statics check.
+    squeeze: squeeze.SqueezeParams = field(default_factory=squeeze.SqueezeParams)
     ik_tol: float = 1e-3
     max_joint_step: float = 0.5
     #: §5.1: "we also evaluate the change in the angle between the EEF and the contact surface normal
@@ -297,6 +305,74 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
     return status
 
 
+def squeeze_candidates(links, support: np.ndarray, by_pose: dict) -> np.ndarray:
+    """Squeeze-tumble edge candidates ``(n, 3)`` (grasp at a, grasp at b, link): every tumble link out
+    of an SP pose (``support`` per pose) and every grasp of its pose ``a`` whose contact pair is also a
+    grasp of the landing pose ``b`` (``by_pose``: pose -> {(left contact, right contact): grasp})."""
+    cand = []
+    for li in np.flatnonzero(links["primitive"] == "tumble").tolist():
+        a, b = int(links["pose_a"][li]), int(links["pose_b"][li])
+        if support[a] != "SP":
+            continue
+        gb = by_pose.get(b, {})
+        cand += [(gi, gb[key], li) for key, gi in by_pose.get(a, {}).items() if key in gb]
+    return np.array(cand, dtype=np.int64).reshape(-1, 3)
+
+
+def _squeeze_rolls(pc: PivotChecks, links: np.ndarray) -> dict:
+    """Link -> its roll (``stages.poses.roll_segments``) where rolling over the link's edge from its
+    pose a lands on its pose b."""
+    out = {}
+    for li in links.tolist():
+        Xa, Xb = pc.X_WO[pc.link_poses[li, 0]], pc.X_WO[pc.link_poses[li, 1]]
+        try:
+            roll = poses.roll_segments(pc.model, Xa, *(int(v) for v in pc.link_edge[li]))
+        except InputError:
+            continue
+        if np.abs(roll.X_end - Xb).max() <= 1e-5:
+            out[li] = roll
+    return out
+
+
+def check_squeeze_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.ndarray:
+    """Status of squeeze-tumble candidates ``cand (n, 3)`` (grasp at a, grasp at b, link), ``(n,)``
+    (``stages.squeeze``): ``not_a_tumble`` when the roll does not land on pose b; ``unstable`` when
+    the two balls cannot hold the object on its edge at one of the sampled angles (the stability LP
+    with ``SqueezeParams.friction`` of the frictions and ``force_safety``); then the arms along the roll sampled every
+    ``push_step`` (:func:`check_arm_motion`, §5.1's ``eef_normal_angle``)."""
+    status = np.full(len(cand), "ok", dtype=object)
+    if not len(cand):
+        return status.astype(str)
+    scene, model, P = pc.scene, pc.model, params.squeeze
+    rolls = _squeeze_rolls(pc, np.unique(cand[:, 2]))
+    status[[li not in rolls for li in cand[:, 2].tolist()]] = "not_a_tumble"
+    live = np.flatnonzero(status == "ok")
+    mu = P.friction * scene.object.friction
+    sp = stability.Params(mu_eef=mu, mu_table=P.friction * scene.table.friction,
+                          f_max=stability.normal_bound(params.force_safety * scene.robot.max_eef_force, mu))
+    L = float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2)
+    for li in np.unique(cand[live, 2]).tolist():  # statics: all grasps of a link at its angles at once
+        rows = live[cand[live, 2] == li]
+        th = squeeze.sample_angles(rolls[li], P.samples)
+        X, edge = rolls[li].poses(th), squeeze.edge_points(model, rolls[li], th)
+        A, g = len(th), cand[rows, 0]
+        ok = squeeze.squeeze_holds(scene.object.mass, model.com, np.tile(X, (len(rows), 1, 1)),
+                                   np.tile(edge, (len(rows), 1, 1)), np.repeat(pc.p_g[g], A, axis=0),
+                                   np.repeat(pc.n_g[g], A, axis=0), L, sp).reshape(len(rows), A)
+        status[rows[~ok.all(axis=1)]] = "unstable"
+    live = np.flatnonzero(status == "ok")
+    if len(live):
+        K = int(np.ceil(max(rolls[li].total for li in cand[live, 2].tolist()) / params.push_step)) + 1
+        X_traj = np.stack([rolls[li].poses(np.linspace(0.0, rolls[li].total, K)) for li in cand[live, 2].tolist()])
+        g = cand[live, 0]
+        ok, why, q = check_arm_motion(pc.robot, pc.collide, X_traj, pc.p_g[g], pc.n_g[g], pc.q_g[g],
+                                      scene.robot.ball_radius, params)
+        turned = ok & (eef_normal_angle_change(pc.robot, q, X_traj, pc.n_g[g]) > params.max_eef_normal_change)
+        why[turned] = "eef_normal_angle"
+        status[live] = why
+    return status.astype(str)
+
+
 def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph:
     """Nodes and edges with their checks (module docstring)."""
     t0 = time.perf_counter()
@@ -397,6 +473,9 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             for n in by_landing.get((int(b), catcher), []):
                 st = why if why != "ok" else str(catches["status"][n - catch_ids[0]])
                 edges.append((src, n, "tumble", w.tumble, st, -1, e0, e1, pusher))
+    sq = squeeze_candidates(links, ps["support"], by_pose)
+    edges += [(ga, gb, "tumble", w.tumble, str(st), -1, int(links["edge_v0"][li]), int(links["edge_v1"][li]), "both")
+              for (ga, gb, li), st in zip(sq.tolist(), check_squeeze_edges(checks, sq, params), strict=True)]
     edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
     holds = hold_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], catches, params)
     holds["node_id"] = G + len(kept_sp) + len(catch_ids) + np.arange(len(holds["pose_id"]))

@@ -25,6 +25,10 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   of the grasp, then the catcher to its own while the pusher's ball holds: a regrasp in USP; or,
   through a hold node, the pusher first to the hold's contact on top, then the catcher to its grasp
   contact and the pusher to its own.
+- **squeeze tumble** (a tumble from a grasp node, ``stages.squeeze``): both balls stay on the
+  grasp's contacts and roll the object onto its next face: IK from the actual configuration and
+  collisions along the roll, the balls' rolling as for a pivot, and the tumbling MPC with both balls
+  on throughout (:func:`_check_squeeze_step`).
 
 The first failing edge is removed (both directions for undirected ones), the removal and its reason
 are logged, and the search runs again, until a path passes or none is left. With no path (before or
@@ -54,7 +58,7 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from stages import artifacts, diagnosis, mpc, poses, provenance, se3, stagelog, transit
+from stages import artifacts, diagnosis, mpc, poses, provenance, se3, squeeze, stagelog, transit
 from stages.graph import Params as GraphParams
 from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
@@ -277,23 +281,77 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                       ctx.scene.robot.ball_radius, GraphParams(), batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
-        roll = {}
-        for k, arm in enumerate(("left", "right")):
-            shift = state.roll[arm] + rolling_shift(ctx.robot, arm, q[:, 0, k], Xr[sub], n_c[k],
-                                                    ctx.scene.robot.ball_radius)
-            off = rolled_off(ctx.tables["mesh"], p_c[k], n_c[k], ctx.scene.robot.ball_radius, shift,
-                             params.friction_safety * ctx.scene.object.friction, params.roll)
-            if off >= 0:
-                far = 1000 * np.linalg.norm(shift[off])
-                return False, "ball_rolls_off", {**step, "detail": f"{arm} ball, {far:.0f} mm from its contact"}, state
-            roll[arm] = shift[-1]
+        roll, detail = _rolled(ctx, params, state, q[:, 0], Xr[sub], p_c, n_c)
+        if roll is None:
+            return False, "ball_rolls_off", {**step, "detail": detail}, state
         # The MPC check (``_MPCChecks``) depends on the arc alone; the walk asks for it.
         new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
                      {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb, roll)
         step.update(vertex=vtx, angle=float(_yaw_between(Xa, Xb)), grasp=gu,
                     contacts={"left": cl, "right": cr})
         return True, "ok", step, new
+    if nodes["kind"][u] == "grasp":  # grasp -> grasp: the grasp itself rolls the object
+        return _check_squeeze_step(ctx, params, state, data, step, gu)
     return _check_tumble_step(ctx, params, state, u, v, data, step)
+
+
+def _rolled(ctx: _Context, params: Params, state: _State, q: np.ndarray, X: np.ndarray, p_c: np.ndarray,
+            n_c: np.ndarray) -> tuple[dict | None, str]:
+    """Where both balls have rolled to on the object (``stages.rolling``) after a motion through poses
+    ``X (T, 4, 4)`` with joints ``q (T, 2, n)`` on contacts ``p_c, n_c (2, 3)`` (O), summed with what
+    they rolled before (``state.roll``): ``(arm -> shift (3,) (m, O), "")``, or ``(None, which ball
+    rolls off its surface and how far)``."""
+    roll = {}
+    for k, arm in enumerate(("left", "right")):
+        shift = state.roll[arm] + rolling_shift(ctx.robot, arm, q[:, k], X, n_c[k], ctx.scene.robot.ball_radius)
+        off = rolled_off(ctx.tables["mesh"], p_c[k], n_c[k], ctx.scene.robot.ball_radius, shift,
+                         params.friction_safety * ctx.scene.object.friction, params.roll)
+        if off >= 0:
+            return None, f"{arm} ball, {1000 * np.linalg.norm(shift[off]):.0f} mm from its contact"
+        roll[arm] = shift[-1]
+    return roll, ""
+
+
+def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict, step: dict, g: int):
+    """:func:`_check_step` of a squeeze tumble (``stages.squeeze``): both balls on grasp ``g``'s
+    contacts roll the object over the edge. IK from the actual joints and collisions every 0.1 s of
+    the motion (as a pivot's, so ``stages.trajectory.plan_squeeze`` ends in the same joints), the
+    balls' rolling on the object, and the tumbling MPC with both balls on throughout
+    (``stages.squeeze.mpc_params``: less friction than a pivot's), judged as a pivot's
+    (``mpc_infeasible``, ``mpc_marginal``)."""
+    from stages import trajectory  # it imports this module's neighbours, not this module
+
+    e0, e1 = int(ctx.edges["edge_v0"][data["edge_id"]]), int(ctx.edges["edge_v1"][data["edge_id"]])
+    Xa, Xb = ctx.X_WO[step["pose_from"]], ctx.X_WO[step["pose_to"]]
+    cl, cr = ctx.contact(g, "left"), ctx.contact(g, "right")
+    p_c, n_c = ctx.p_O[[cl, cr]], ctx.n_O[[cl, cr]]
+    P = GraphParams().squeeze
+    m = squeeze.squeeze_motion(ctx.model, Xa, (e0, e1), P, params.mpc.dt)
+    every = max(1, int(round(0.1 / params.mpc.dt)))
+    sub = np.unique(np.r_[np.arange(0, len(m.t), every), len(m.t) - 1])
+    q0 = np.stack([state.q["left"], state.q["right"]])[None]
+    ok, why, q = check_arm_motion(ctx.robot, ctx.collide, m.X_ref[sub][None], p_c[None], n_c[None], q0,
+                                  ctx.scene.robot.ball_radius, GraphParams(), batch=True)
+    if not ok[0]:
+        return False, str(why[0]), step, state
+    roll, detail = _rolled(ctx, params, state, q[:, 0], m.X_ref[sub], p_c, n_c)
+    if roll is None:
+        return False, "ball_rolls_off", {**step, "detail": detail}, state
+    if params.check_mpc:
+        out = trajectory.tumble_mpc(ctx.scene.object.mass, np.asarray(ctx.tables["summary"]["inertia"]), ctx.model,
+                                    m.roll, m.theta, m.t, m.X_ref, np.ones(len(m.t), bool), p_c, n_c,
+                                    squeeze.mpc_params(params.mpc, P, ctx.scene.object.friction,
+                                                       ctx.scene.table.friction, ctx.scene.robot.max_eef_force))
+        if isinstance(out, str):
+            return False, "mpc_infeasible", {**step, "detail": out}, state
+        f_peak = float(np.max(np.linalg.norm(out[1], axis=2)))
+        if max(out[3], default=0.0) > params.mpc_max_error or \
+                f_peak > params.mpc_max_force * ctx.scene.robot.max_eef_force:
+            return False, "mpc_marginal", {**step, "detail": f"peak ball force {f_peak:.1f} N"}, state
+    new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
+                 {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb, roll)
+    step.update(mode="squeeze", pusher="both", edge=[e0, e1], grasp=g, contacts={"left": cl, "right": cr})
+    return True, "ok", step, new
 
 
 def _check_tumble_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict, step: dict):

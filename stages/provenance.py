@@ -71,6 +71,8 @@ def check_made_from(path: str | Path, meta: dict, scene: Scene, analysis_dir: st
 
 _POSE_KEYS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 _STEP_KEYS = {"pivot": ("vertex", "contacts"), "regrasp": ("support",), "tumble": ("pusher", "pusher_contact", "edge")}
+#: A squeeze tumble (``stages.squeeze``): both balls on their grasp's contacts roll the object over its edge.
+_SQUEEZE_KEYS = ("contacts", "edge")
 
 
 def check_plan_steps(plan_path: str | Path, plan: dict, n_vertices: int, n_contacts: int) -> None:
@@ -93,7 +95,8 @@ def check_plan_steps(plan_path: str | Path, plan: dict, n_vertices: int, n_conta
         prim = step.get("primitive") if isinstance(step, dict) else None
         if prim not in _STEP_KEYS:
             raise bad(k, f"primitive {prim!r} is not one of {', '.join(_STEP_KEYS)}")
-        missing = [key for key in ("X_WO_from", "X_WO_to", *_STEP_KEYS[prim]) if key not in step]
+        keys = _SQUEEZE_KEYS if prim == "tumble" and step.get("mode") == "squeeze" else _STEP_KEYS[prim]
+        missing = [key for key in ("X_WO_from", "X_WO_to", *keys) if key not in step]
         if missing:
             raise bad(k, f"the {prim} has no {', '.join(missing)}")
         for key in ("X_WO_from", "X_WO_to"):
@@ -102,8 +105,9 @@ def check_plan_steps(plan_path: str | Path, plan: dict, n_vertices: int, n_conta
                 raise bad(k, f"{key} is not a pose of finite x, y, z, qx, qy, qz, qw")
         if prim == "pivot":
             index(k, "vertex", step["vertex"], n_vertices)
-        if prim == "tumble":
+        if prim == "tumble" and "pusher_contact" in step:
             index(k, "pusher_contact", step["pusher_contact"], n_contacts)
+        if prim == "tumble":
             for v in step["edge"] if isinstance(step["edge"], list) and len(step["edge"]) == 2 else [None]:
                 index(k, "edge vertex", v, n_vertices)
         contacts = step.get("contacts", {})

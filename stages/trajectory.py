@@ -18,6 +18,11 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   less friction than the scene a margin;
 - **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
   PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
+- **squeeze tumble** (a tumble step of ``mode`` ``squeeze``, :func:`plan_squeeze`): both balls stay
+  on the grasp's contacts and roll the object over the edge onto its next face
+  (``stages.squeeze.squeeze_motion``), the forces from the tumbling MPC with both balls on
+  throughout (``stages.squeeze.mpc_params``, as ``pivot plan`` checked it), the joints as for a
+  pivot (:func:`pivot_joints`, the plan's own check);
 - **hold**: a short pause before and after each contact change.
 
 Around every contact of a pivot or a regrasp the balls are then turned about their centres where
@@ -105,7 +110,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from stages import artifacts, mpc, poses, provenance, se3, stability, stagelog, transit
+from stages import artifacts, mpc, poses, provenance, se3, squeeze, stability, stagelog, transit
 from stages.artifacts import Field
 from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
@@ -1310,6 +1315,37 @@ def check_tumble(env: _Env, q: dict, step: dict, X_from: np.ndarray, X_to: np.nd
     return "ok", ""
 
 
+def plan_squeeze(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
+    """Rows of one squeeze tumble (``stages.squeeze``; the module docstring's list), appended
+    to ``tl``; returns a summary. Raises :class:`TumbleError` (``mpc_infeasible``) when the tumbling
+    MPC finds no forces, ``InputError`` when the step's roll does not land on ``X_to``."""
+    P = GraphParams().squeeze
+    e0, e1 = (int(v) for v in step["edge"])
+    cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
+    m = squeeze.squeeze_motion(env.model, X_from, (e0, e1), P, env.mp.dt)
+    if np.abs(m.roll.X_end - X_to).max() > 1e-5:
+        raise InputError(f"plan step {k}: rolling over edge ({e0}, {e1}) does not land on X_WO_to")
+    p_c, n_c = env.p_O[[cl, cr]], env.n_O[[cl, cr]]
+    scene = env.scene
+    out = tumble_mpc(scene.object.mass, env.inertia, env.model, m.roll, m.theta, m.t, m.X_ref, np.ones(len(m.t), bool),
+                     p_c, n_c, squeeze.mpc_params(env.mp, P, scene.object.friction, scene.table.friction,
+                                                  scene.robot.max_eef_force))
+    if isinstance(out, str):
+        raise TumbleError("mpc_infeasible", f"step {k}: {out}")
+    X, f, f_tab, errs = out
+    ql, qr = pivot_joints(env.robot, m.X_ref, p_c, n_c, np.stack([tl.q["left"], tl.q["right"]]), env.r, env.mp.dt)
+    T = len(m.t)
+    tl.add(k, "tumble", np.where(m.t < P.grip_time, "grip", "squeeze"), X, X_ref=m.X_ref, X_start=X_from,
+           p={"left": _ball_centres(X, p_c[0], n_c[0], env.r), "right": _ball_centres(X, p_c[1], n_c[1], env.r)},
+           f={"left": f[:, 0], "right": f[:, 1]}, q={"left": ql, "right": qr},
+           c={"left": np.ones(T, bool), "right": np.ones(T, bool)}, f_table=f_tab)
+    tl.q["left"], tl.q["right"] = ql[-1], qr[-1]
+    tl.contact["left"], tl.contact["right"] = cl, cr
+    return {"mode": "squeeze", "contacts": [cl, cr],
+            "total_deg": float(np.degrees(m.roll.total)), "segments": len(m.roll.angle),
+            "mpc_max_error": max(errs) if errs else 0.0}
+
+
 def _pivot_forces(env, f_cap: float, p_c: np.ndarray, n_in: np.ndarray, p0: np.ndarray, t: np.ndarray,
                   Xr: np.ndarray):
     """The pivot's MPC (``stages.mpc.run_pivot_mpc``: contacts ``p_c (2, 3)`` and inward normals ``n_in``
@@ -1387,7 +1423,10 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             tl.hold(X_to, k, params.hold)
         elif prim == "tumble":
             try:
-                info = plan_tumble(env, tl, k, step, X_from, X_to)
+                if step.get("mode") == "squeeze":
+                    info = plan_squeeze(env, tl, k, step, X_from, X_to)
+                else:
+                    info = plan_tumble(env, tl, k, step, X_from, X_to)
             except TumbleError as err:
                 stats.update(status=err.code, failed_primitive=k, reason=str(err))
                 break

@@ -294,7 +294,8 @@ def test_eef_normal_angle_change_is_the_turn_of_the_tool_against_the_normal():
 
 def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(small_build, tmp_path):
     """With a 5 deg bound on the change of the ball-normal angle, pivot edges whose motion the default
-    passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict."""
+    passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict (but
+    squeeze tumbles, which the same bound refuses)."""
     from dataclasses import replace
 
     from stages import artifacts
@@ -309,7 +310,11 @@ def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(sma
     # Refused before the equilibrium check, which the default run may have failed them on after.
     assert turned.any() and np.isin(ref["status"][turned], ["ok", "unstable"]).all()
     assert (ref["status"][turned] == "ok").any()
-    assert (got["status"][~turned] == ref["status"][~turned]).all()
+    squeezed = (ref["arm"] == "both") & (ref["primitive"] == "tumble") & (got["status"] == "eef_normal_angle") \
+        & (ref["status"] != "eef_normal_angle")
+    assert (ref["status"][squeezed] == "ok").all()
+    same = ~turned & ~squeezed
+    assert (got["status"][same] == ref["status"][same]).all()
 
 
 def _pivot_past_the_wrist():
