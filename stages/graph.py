@@ -491,34 +491,47 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
              "pose_id": np.r_[nodes["pose_id"], one["pose_id"]].astype(np.int64),
              "grasp_id": np.r_[nodes["grasp_id"], -np.ones(nc_, np.int64)],
              "support": np.r_[nodes["support"], np.full(nc_, "USP")].astype(str)}
+    edge_cols = edge_table(edges, one["node_id"])
+    summary = graph_summary(nodes, edge_cols, catches, holds)
+    timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
+    return Graph(nodes, edge_cols, one, summary, timings)
+
+
+def edge_table(edges: list[tuple], one_ball_nodes: np.ndarray) -> dict:
+    """The ``edges.parquet`` columns of edge rows ``(a, b, primitive, weight, status, vertex, edge_v0,
+    edge_v1, arm)``: tumbles and every edge out of a one-ball node (catch, hold) are directed."""
     E = len(edges)
     cols = list(zip(*edges, strict=True)) if E else [[]] * 9
-    edge_cols = {
+    node_a = np.array(cols[0], dtype=np.int64)
+    return {
         "edge_id": np.arange(E),
-        "node_a": np.array(cols[0], dtype=np.int64),
+        "node_a": node_a,
         "node_b": np.array(cols[1], dtype=np.int64),
         "primitive": np.array(cols[2], dtype=str),
         "weight": np.array(cols[3], dtype=float),
         "status": np.array(cols[4], dtype=str),
-        "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool) | np.isin(np.array(cols[0], np.int64),
-                                                                                      one["node_id"]),
+        "directed": np.array([p == "tumble" for p in cols[2]], dtype=bool) | np.isin(node_a, one_ball_nodes),
         "vertex": np.array(cols[5], dtype=np.int64),
         "edge_v0": np.array(cols[6], dtype=np.int64),
         "edge_v1": np.array(cols[7], dtype=np.int64),
         "arm": np.array(cols[8], dtype=str),
     }
+
+
+def graph_summary(nodes: dict, edge_cols: dict, catches: dict, holds: dict) -> dict:
+    """``graph.json``'s counts: nodes by kind (catch and hold nodes kept and rejected), edges by
+    primitive kept and rejected, and the rejected edges by reason."""
     st, ct = np.unique(edge_cols["status"], return_counts=True)
-    summary = {
-        "nodes": {"grasp": int(G), "free": int(len(kept_sp)), "catch": int(np.sum(catches["status"] == "ok")),
-                  "catch_rejected": int(np.sum(catches["status"] != "ok")),
-                  "hold": int(np.sum(holds["status"] == "ok")), "hold_rejected": int(np.sum(holds["status"] != "ok"))},
-        "edges": {p: {"ok": int(((edge_cols["primitive"] == p) & (edge_cols["status"] == "ok")).sum()),
-                      "rejected": int(((edge_cols["primitive"] == p) & (edge_cols["status"] != "ok")).sum())}
+    prim, ok = edge_cols["primitive"], edge_cols["status"] == "ok"
+    counts = {k: int(np.sum(nodes["kind"] == k)) for k in ("grasp", "free")}
+    for k, rows in (("catch", catches), ("hold", holds)):
+        counts[k], counts[f"{k}_rejected"] = int(np.sum(rows["status"] == "ok")), int(np.sum(rows["status"] != "ok"))
+    return {
+        "nodes": counts,
+        "edges": {p: {"ok": int((ok & (prim == p)).sum()), "rejected": int((~ok & (prim == p)).sum())}
                   for p in ("pivot", "regrasp", "tumble")},
         "reasons": {str(s): int(c) for s, c in zip(st, ct, strict=True) if s != "ok"},
     }
-    timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
-    return Graph(nodes, edge_cols, one, summary, timings)
 
 
 def usp_regrasp_edges(grasps, usp_ids, q_g, X_WO, collide, weight: float) -> list[tuple]:
