@@ -175,6 +175,10 @@ class Params:
     #: ball forces, so it leans on the table's friction up to its bound, and physics whose friction
     #: is 20 % lower than the scene's (``pivot execute --randomize``) then has no margin left.
     table_friction_tries: tuple[float, ...] = (0.6, 0.7)
+    #: ... each first with both balls pressing at least this hard (N, normal): the MPC minimises the
+    #: ball forces, and where a pivot needs little (the duck's, 11-14 N at the peak) a ball pressing
+    #: 2 N slips on the object and the object slides on its vertex (12-52 mm, 3-13 deg in physics).
+    pivot_squeeze: float = 10.0
     pivot_durations: tuple[float, float, float] = (2.5, 3.0, 2.5)
     tumble: TumbleParams = field(default_factory=TumbleParams)
     hold: float = 0.5
@@ -1349,18 +1353,22 @@ def plan_squeeze(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarra
 def _pivot_forces(env, f_cap: float, p_c: np.ndarray, n_in: np.ndarray, p0: np.ndarray, t: np.ndarray,
                   Xr: np.ndarray):
     """The pivot's MPC (``stages.mpc.run_pivot_mpc``: contacts ``p_c (2, 3)`` and inward normals ``n_in``
-    (O), table vertex ``p0`` (W), reference times ``t`` and poses ``Xr``) with the first of ``table_friction_tries``
-    whose solution is feasible and keeps every ball force within ``f_cap`` (N, the plan's
-    ``mpc_max_force`` share of the bound: what the plan checked and the controller commands), else
-    with ``friction_safety``, the plan's own check. Returns ``(result, table friction share)``."""
+    (O), table vertex ``p0`` (W), reference times ``t`` and poses ``Xr``) with the first of
+    ``table_friction_tries`` (each ball's normal force at least ``pivot_squeeze``, then at least the
+    MPC's ``f_min``) whose solution is feasible and keeps every ball force within ``f_cap`` (N, the
+    plan's ``mpc_max_force`` share of the bound: what the plan checked and the controller commands),
+    else with ``friction_safety`` and ``f_min``, the plan's own check. Returns ``(result, table
+    friction share, least normal force (N))``."""
     scene, params = env.scene, env.params
-    for fs in (*params.table_friction_tries, params.friction_safety):
+    tries = [(f, fs) for f in (params.pivot_squeeze, env.mp.f_min)
+             for fs in (*params.table_friction_tries, params.friction_safety)]
+    for f_min, fs in tries:
         res = mpc.run_pivot_mpc(scene.object.mass, env.inertia, env.model.com, p_c, n_in, p0, t, Xr,
-                                replace(env.mp, mu_table=fs * scene.table.friction))
-        if res.status == "ok" and (fs == params.friction_safety
+                                replace(env.mp, mu_table=fs * scene.table.friction, f_min=f_min))
+        if res.status == "ok" and ((f_min, fs) == tries[-1]
                                    or float(np.max(np.linalg.norm(res.f_eef_W, axis=2))) <= f_cap):
             break
-    return res, fs
+    return res, fs, f_min
 
 
 def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict]:
@@ -1374,7 +1382,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     f_cap = float(plan.get("meta", {}).get("params", {}).get("mpc_max_force", 1.0)) * scene.robot.max_eef_force
     tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
-             "tumbles": [], "pivot_table_friction": []}
+             "tumbles": [], "pivot_table_friction": [], "pivot_squeeze": []}
 
     def pose_of(step, key):
         return se3.matrix_from_columns({k: np.atleast_1d(v) for k, v in step[key].items()})[0]
@@ -1403,8 +1411,9 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
                                                p_com_O=model.com, tilt_dir=d)
             cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            res, fs = _pivot_forces(env, f_cap, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr)
+            res, fs, f_min = _pivot_forces(env, f_cap, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr)
             stats["pivot_table_friction"].append(fs)
+            stats["pivot_squeeze"].append(f_min)
             if res.status != "ok":
                 stats.update(status="mpc_infeasible", failed_primitive=k)
                 break
