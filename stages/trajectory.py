@@ -1360,7 +1360,7 @@ def _pivot_forces(env, f_cap: float, p_c: np.ndarray, n_in: np.ndarray, p0: np.n
     else with ``friction_safety`` and ``f_min``, the plan's own check. Returns ``(result, table
     friction share, least normal force (N))``."""
     scene, params = env.scene, env.params
-    tries = [(f, fs) for f in (params.pivot_squeeze, env.mp.f_min)
+    tries = [(f, fs) for f in (min(params.pivot_squeeze, env.mp.f_max), env.mp.f_min)
              for fs in (*params.table_friction_tries, params.friction_safety)]
     for f_min, fs in tries:
         res = mpc.run_pivot_mpc(scene.object.mass, env.inertia, env.model.com, p_c, n_in, p0, t, Xr,

@@ -599,7 +599,35 @@ def test_a_pivot_keeps_the_first_table_friction_whose_ball_forces_fit_the_plans_
     def peak(res):
         return float(np.linalg.norm(res.f_eef_W, axis=2).max())
 
-    first, share = trajectory._pivot_forces(env, 1e3, *args)
-    assert first.ok and share == 0.3
-    capped, share = trajectory._pivot_forces(env, 0.99 * peak(first), *args)
-    assert capped.ok and share == 0.6 and peak(capped) <= 0.99 * peak(first)
+    first, share, floor = trajectory._pivot_forces(env, 1e3, *args)
+    assert first.ok and share == 0.3 and floor == params.pivot_squeeze
+    capped, share, floor = trajectory._pivot_forces(env, 0.99 * peak(first), *args)
+    assert capped.ok and share == 0.6 and floor == params.pivot_squeeze and peak(capped) <= 0.99 * peak(first)
+
+
+def test_a_pivot_squeezes_first_and_falls_back_to_the_plans_least_force():
+    """trajectory._pivot_forces: each ball first presses at least ``pivot_squeeze`` (its normal force,
+    along the inward normal); where no solution with that floor keeps the forces within the cap it
+    falls back to the MPC's ``f_min``, the plan's own check."""
+    from types import SimpleNamespace
+
+    from stages import trajectory
+
+    t, X_ref, _ = mpc.pivot_reference(X_WO0, _goal(), P0_W, TILT, 0.02, DURATIONS)
+    scene = SimpleNamespace(object=SimpleNamespace(mass=MASS, friction=0.5), table=SimpleNamespace(friction=0.5))
+
+    def run(floor, cap=1e3):
+        params = trajectory.Params(mpc=mpc.Params(dt=0.02), pivot_squeeze=floor)
+        env = SimpleNamespace(scene=scene, params=params, inertia=I_COM, model=SimpleNamespace(com=np.zeros(3)),
+                              mp=mpc.Params(dt=0.02, mu_eef=0.4, mu_table=0.4))
+        return trajectory._pivot_forces(env, cap, P_C_O, N_C_O, P0_W, t, X_ref)
+
+    light, _, _ = run(2.0)  # this pivot needs ~20 N of each ball anyway
+    res, _, f_min = run(30.0)
+    normal = np.einsum("tki,tki->tk", res.f_eef_W, np.einsum("tij,kj->tki", res.X_WO[:, :3, :3], N_C_O))
+    assert res.ok and f_min == 30.0 and normal.min() >= 30.0 - 1e-3
+    assert light.ok and np.linalg.norm(light.f_eef_W, axis=2).min() < 25.0
+    # A cap under what 30 N of squeeze needs: the plan's least force, on the first share that fits.
+    res, share, f_min = run(30.0, cap=28.0)
+    assert res.ok and f_min == mpc.Params().f_min and np.linalg.norm(res.f_eef_W, axis=2).max() <= 28.0
+    assert run(1e3)[2] == mpc.Params().f_max  # a floor above the force bound is the bound
