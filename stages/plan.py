@@ -140,6 +140,7 @@ class _Context:
         self.sample = artifacts.read_json(sd / "sample.json", "sample")
         self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
+        self.squeeze = squeeze.recorded(self.edges.meta["params"].get("squeeze", {}))  # the graph's own
         catches = artifacts.read_table(gd / "catches.parquet", "catches")
         self.catch = {int(n): (str(a), int(c), np.asarray(q, dtype=float)) for n, a, c, q in
                       zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
@@ -325,7 +326,7 @@ def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict
     Xa, Xb = ctx.X_WO[step["pose_from"]], ctx.X_WO[step["pose_to"]]
     cl, cr = ctx.contact(g, "left"), ctx.contact(g, "right")
     p_c, n_c = ctx.p_O[[cl, cr]], ctx.n_O[[cl, cr]]
-    P = GraphParams().squeeze
+    P = ctx.squeeze
     m = squeeze.squeeze_motion(ctx.model, Xa, (e0, e1), P, params.mpc.dt)
     every = max(1, int(round(0.1 / params.mpc.dt)))
     sub = np.unique(np.r_[np.arange(0, len(m.t), every), len(m.t) - 1])
@@ -350,7 +351,8 @@ def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict
             return False, "mpc_marginal", {**step, "detail": f"peak ball force {f_peak:.1f} N"}, state
     new = _State({"left": q[-1, 0, 0], "right": q[-1, 0, 1]},
                  {"left": se3.rotate_vectors(Xb, n_c[0]), "right": se3.rotate_vectors(Xb, n_c[1])}, Xb, roll)
-    step.update(mode="squeeze", pusher="both", edge=[e0, e1], grasp=g, contacts={"left": cl, "right": cr})
+    step.update(mode="squeeze", pusher="both", edge=[e0, e1], grasp=g, contacts={"left": cl, "right": cr},
+                squeeze=asdict(P))
     return True, "ok", step, new
 
 

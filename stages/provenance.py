@@ -71,8 +71,9 @@ def check_made_from(path: str | Path, meta: dict, scene: Scene, analysis_dir: st
 
 _POSE_KEYS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 _STEP_KEYS = {"pivot": ("vertex", "contacts"), "regrasp": ("support",), "tumble": ("pusher", "pusher_contact", "edge")}
-#: A squeeze tumble (``stages.squeeze``): both balls on their grasp's contacts roll the object over its edge.
-_SQUEEZE_KEYS = ("contacts", "edge")
+#: A squeeze tumble (``stages.squeeze``): both balls on their grasp's contacts roll the object over its edge,
+#: with the squeeze parameters the graph checked it with.
+_SQUEEZE_KEYS = ("contacts", "edge", "squeeze")
 
 
 def check_plan_steps(plan_path: str | Path, plan: dict, n_vertices: int, n_contacts: int) -> None:

@@ -54,6 +54,12 @@ class SqueezeParams:
     friction: float = 0.65
 
 
+def recorded(params: dict) -> SqueezeParams:
+    """The squeeze parameters recorded in an artifact's ``params`` (the graph's, or a plan step's
+    ``squeeze``), so that the plan and the trajectory stage use what the graph checked."""
+    return SqueezeParams(**params)
+
+
 class SqueezeMotion(NamedTuple):
     """A squeeze tumble's reference: the roll, times ``t (T,)`` (s), angles ``theta (T,)`` (rad) and
     object poses ``X_ref (T, 4, 4)`` (W)."""

@@ -1323,7 +1323,7 @@ def plan_squeeze(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarra
     """Rows of one squeeze tumble (``stages.squeeze``; the module docstring's list), appended
     to ``tl``; returns a summary. Raises :class:`TumbleError` (``mpc_infeasible``) when the tumbling
     MPC finds no forces, ``InputError`` when the step's roll does not land on ``X_to``."""
-    P = GraphParams().squeeze
+    P = squeeze.recorded(step["squeeze"])  # what the plan checked
     e0, e1 = (int(v) for v in step["edge"])
     cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
     m = squeeze.squeeze_motion(env.model, X_from, (e0, e1), P, env.mp.dt)

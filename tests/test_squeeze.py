@@ -7,7 +7,7 @@ above it: farther from the edge than the CoM, so that lifting there turns the bo
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -146,7 +146,7 @@ def test_the_squeezed_box_lands_on_its_face_in_physics(box):
     steps = [{"primitive": "regrasp", "support": "SP", "arms": ["left", "right"], "transit": paths, "contacts": c,
               "X_WO_from": pose(X), "X_WO_to": pose(X)},
              {"primitive": "tumble", "mode": "squeeze", "support": "SP", "edge": list(box["edge"]), "contacts": c,
-              "X_WO_from": pose(X), "X_WO_to": pose(box["roll"].X_end)}]
+              "squeeze": asdict(squeeze.SqueezeParams()), "X_WO_from": pose(X), "X_WO_to": pose(box["roll"].X_end)}]
     cols, stats = trajectory.compute(scene, box["dir"] / "analysis", {"status": "ok", "steps": steps},
                                      trajectory.Params())
     assert stats["status"] == "ok", stats
@@ -168,15 +168,15 @@ def test_the_squeezed_box_lands_on_its_face_in_physics(box):
     assert not m["success"], m
 
 
-def test_a_plan_step_of_a_squeeze_names_its_contacts_and_edge_not_a_pusher():
+def test_a_plan_step_of_a_squeeze_names_its_contacts_edge_and_parameters_not_a_pusher():
     from stages import provenance
     from stages.errors import ArtifactError
 
     pose = {"x": 0.0, "y": 0.0, "z": 0.1, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0}
     step = {"primitive": "tumble", "mode": "squeeze", "support": "SP", "edge": [0, 1],
-            "contacts": {"left": 3, "right": 4}, "X_WO_from": pose, "X_WO_to": pose}
+            "contacts": {"left": 3, "right": 4}, "squeeze": {}, "X_WO_from": pose, "X_WO_to": pose}
     provenance.check_plan_steps("plan.json", {"steps": [step]}, 8, 10)
-    for key, bad in (("contacts", None), ("edge", None), ("edge", [0, 9])):
+    for key, bad in (("contacts", None), ("edge", None), ("squeeze", None), ("edge", [0, 9])):
         broken = {k: v for k, v in step.items() if k != key} if bad is None else {**step, key: bad}
         with pytest.raises(ArtifactError, match="step 0"):
             provenance.check_plan_steps("plan.json", {"steps": [broken]}, 8, 10)
