@@ -12,10 +12,11 @@ the table reaction, all joint angles and the contact flags. Per primitive:
   follow it (``p_i(t) = X_WO(t) p_Oi`` moved out by the ball radius) and the joints are those of the
   planner's own IK check of the pivot (:func:`pivot_joints`), so that they end where the plan's next
   transit starts. The MPC minimises the ball forces and so leans on the table's friction up to its
-  bound; it first runs with a smaller table friction (``Params.table_friction_tries``) and keeps
-  the first feasible run whose ball forces stay within the plan's ``mpc_max_force`` share of the
-  bound (the plan checked no more; the controller commands no more), which leaves physics with 20 %
-  less friction than the scene a margin;
+  bound; it first runs with a smaller table friction (``Params.table_friction_tries``), each ball
+  pressing at least ``Params.pivot_squeeze``, then with the plan's least force, and keeps the first
+  feasible run whose ball forces stay within the plan's ``mpc_max_force`` share of the bound (the
+  plan checked no more; the controller commands no more), which leaves physics with 20 % less
+  friction than the scene a margin;
 - **tumble** (:func:`plan_tumble`): a front/back squeeze about the support edge, as measured in
   PyBullet (notes/pybullet-pivoting.md, "Tumbling"); see below;
 - **squeeze tumble** (a tumble step of ``mode`` ``squeeze``, :func:`plan_squeeze`): both balls stay
