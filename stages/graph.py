@@ -338,8 +338,9 @@ def check_squeeze_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np
     """Status of squeeze-tumble candidates ``cand (n, 3)`` (grasp at a, grasp at b, link), ``(n,)``
     (``stages.squeeze``): ``not_a_tumble`` when the roll does not land on pose b; ``unstable`` when
     the two balls cannot hold the object on its edge at one of the sampled angles (the stability LP
-    with ``SqueezeParams.friction`` of the frictions and ``force_safety``); then the arms along the roll sampled every
-    ``push_step`` (:func:`check_arm_motion`, §5.1's ``eef_normal_angle``)."""
+    with ``SqueezeParams.friction`` of the frictions and ``force_safety``, all candidates in one
+    batch); then the arms along the roll sampled every ``push_step``, in chunks of ``pivot_chunk``
+    (:func:`check_arm_motion`, §5.1's ``eef_normal_angle``)."""
     status = np.full(len(cand), "ok", dtype=object)
     if not len(cand):
         return status.astype(str)
@@ -351,25 +352,28 @@ def check_squeeze_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np
     sp = stability.Params(mu_eef=mu, mu_table=P.friction * scene.table.friction,
                           f_max=stability.normal_bound(params.force_safety * scene.robot.max_eef_force, mu))
     L = float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2)
-    for li in np.unique(cand[live, 2]).tolist():  # statics: all grasps of a link at its angles at once
-        rows = live[cand[live, 2] == li]
-        th = squeeze.sample_angles(rolls[li], P.samples)
-        X, edge = rolls[li].poses(th), squeeze.edge_points(model, rolls[li], th)
-        A, g = len(th), cand[rows, 0]
-        ok = squeeze.squeeze_holds(scene.object.mass, model.com, np.tile(X, (len(rows), 1, 1)),
-                                   np.tile(edge, (len(rows), 1, 1)), np.repeat(pc.p_g[g], A, axis=0),
-                                   np.repeat(pc.n_g[g], A, axis=0), L, sp).reshape(len(rows), A)
-        status[rows[~ok.all(axis=1)]] = "unstable"
+    # Statics: every candidate at its link's angles, in one batch of LPs.
+    angles = {li: squeeze.sample_angles(rolls[li], P.samples) for li in np.unique(cand[live, 2]).tolist()}
+    X = {li: rolls[li].poses(th) for li, th in angles.items()}
+    edge = {li: squeeze.edge_points(model, rolls[li], th) for li, th in angles.items()}
+    links = cand[live, 2].tolist()
+    reps = np.array([len(angles[li]) for li in links], dtype=np.int64)
+    g = np.repeat(cand[live, 0], reps)
+    ok = squeeze.squeeze_holds(scene.object.mass, model.com, np.concatenate([X[li] for li in links]),
+                               np.concatenate([edge[li] for li in links]), pc.p_g[g], pc.n_g[g], L, sp)
+    held = np.logical_and.reduceat(ok, np.r_[0, np.cumsum(reps)[:-1]]) if len(ok) else np.zeros(0, bool)
+    status[live[~held]] = "unstable"
     live = np.flatnonzero(status == "ok")
     if len(live):
         K = int(np.ceil(max(rolls[li].total for li in cand[live, 2].tolist()) / params.push_step)) + 1
         X_traj = np.stack([rolls[li].poses(np.linspace(0.0, rolls[li].total, K)) for li in cand[live, 2].tolist()])
-        g = cand[live, 0]
-        ok, why, q = check_arm_motion(pc.robot, pc.collide, X_traj, pc.p_g[g], pc.n_g[g], pc.q_g[g],
-                                      scene.robot.ball_radius, params)
-        turned = ok & (eef_normal_angle_change(pc.robot, q, X_traj, pc.n_g[g]) > params.max_eef_normal_change)
-        why[turned] = "eef_normal_angle"
-        status[live] = why
+        for s in range(0, len(live), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
+            c, g = slice(s, s + params.pivot_chunk), cand[live[s:s + params.pivot_chunk], 0]
+            ok, why, q = check_arm_motion(pc.robot, pc.collide, X_traj[c], pc.p_g[g], pc.n_g[g], pc.q_g[g],
+                                          scene.robot.ball_radius, params)
+            turned = ok & (eef_normal_angle_change(pc.robot, q, X_traj[c], pc.n_g[g]) > params.max_eef_normal_change)
+            why[turned] = "eef_normal_angle"
+            status[live[c]] = why
     return status.astype(str)
 
 

@@ -107,10 +107,8 @@ def sample_angles(roll: Roll, n: int) -> np.ndarray:
 
 def edge_points(model, roll: Roll, theta: np.ndarray) -> np.ndarray:
     """The support edge's two vertices ``(A, 2, 3)`` (W) at roll angles ``theta (A,)``."""
-    X = roll.poses(theta)
     seg = np.array([roll.segment_of(th) for th in theta], dtype=np.int64)
-    v = model.vertices[roll.edge[seg]]  # (A, 2, 3) in O
-    return np.einsum("aij,akj->aki", X[:, :3, :3], v) + X[:, None, :3, 3]
+    return se3.transform_points(roll.poses(theta)[:, None], model.vertices[roll.edge[seg]])
 
 
 def squeeze_holds(mass: float, com_O: np.ndarray, X: np.ndarray, edge_W: np.ndarray, p_O: np.ndarray,
@@ -123,8 +121,7 @@ def squeeze_holds(mass: float, com_O: np.ndarray, X: np.ndarray, edge_W: np.ndar
     ``stability.evaluate``) with ``params``' friction and force bound."""
     if len(X) == 0:
         return np.zeros(0, bool)
-    pts = np.einsum("nij,nkj->nki", X[:, :3, :3], p_O) + X[:, None, :3, 3]
-    nrm = -np.einsum("nij,nkj->nki", X[:, :3, :3], n_O)
-    res = stability.evaluate(mass, se3.transform_points(X, com_O), edge_W, None, pts, nrm, None, L, params,
-                             compute_margin=False)
+    res = stability.evaluate(mass, se3.transform_points(X, com_O), edge_W, None,
+                             se3.transform_points(X[:, None], p_O), -se3.rotate_vectors(X[:, None], n_O), None, L,
+                             params, compute_margin=False)
     return np.asarray(res.stable, bool)
