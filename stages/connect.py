@@ -341,6 +341,59 @@ def connect_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray,
     return _failure(pose_a, NO_SEQUENCE)
 
 
+def walk_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray, params: Params = Params(),
+                strides: int = 6, grid: int = 7) -> Connection:
+    """A pivot walk from ``pose_a`` to ``pose_b`` (planar, m, m, rad) beyond the closed form's reach.
+
+    The quasi-static pivot gait of §5.1 (Fig. 7) steered greedily: each stride is two pivots about two
+    different ``corners (k, 2)`` (m, planar frame), the pair and angles (``grid`` values in
+    ``[-max_angle, max_angle]``) that bring the pose nearest ``pose_b`` (the corners' centroid in plan
+    view plus half the corners' spread in m per rad of heading), until :func:`connect_planar` finishes
+    from the pose reached; at most ``strides`` strides, and a stride that brings it no nearer ends the
+    walk. §5.3 joins poses within three pivots ([18]'s neighbourhood); the walk joins lattices whose
+    nearest poses lie several pivots apart (a small base moves a few cm per pivot). Greedy: it may
+    miss a sequence that exists. Two pivots in a row may share a corner where a stride meets the next
+    or the closed form (two bounded pivots, each exact).
+    """
+    pose_a, pose_b = np.asarray(pose_a, dtype=float), np.asarray(pose_b, dtype=float)
+    corners = np.asarray(corners, dtype=float)
+    _check(params, corners, (("pose_a", pose_a, (3,)), ("pose_b", pose_b, (3,))))
+    k = len(corners)
+    ref = corners.mean(axis=0)
+    spread = float(np.max(np.linalg.norm(corners[:, None] - corners[None], axis=-1)))
+    goal_ref = pose_b[:2] + _apply(_rot2(pose_b[2]), ref)
+
+    def distance(p: np.ndarray) -> np.ndarray:  # (..., 3) -> (...)
+        return (np.linalg.norm(p[..., :2] + _apply(_rot2(p[..., 2]), ref) - goal_ref, axis=-1)
+                + 0.5 * spread * np.abs(wrap_angle(p[..., 2] - pose_b[2])))
+
+    pairs = corner_sequences(k, 2)
+    if not len(pairs):  # one corner: no stride
+        return connect_planar(pose_a, pose_b, corners, params)
+    a = np.linspace(-params.max_angle, params.max_angle, grid)
+    ids = np.repeat(pairs, grid * grid, axis=0)                                    # (P * g^2, 2)
+    ang = np.tile(np.stack(np.meshgrid(a, a, indexing="ij"), -1).reshape(-1, 2), (len(pairs), 1))
+    seq_ids, seq_ang, cur = [], [], pose_a
+    for n in range(strides + 1):
+        end = connect_planar(cur, pose_b, corners, params)
+        if end.ok:
+            ids_all = np.concatenate([*seq_ids, end.corners]).astype(int)
+            ang_all = np.concatenate([*seq_ang, end.angles])
+            return Connection(True, ids_all, ang_all, apply_pivots(pose_a, corners, ids_all, ang_all),
+                              float(np.sum(np.abs(ang_all))), "")
+        if n == strides:
+            break
+        step = apply_pivots(cur, corners, ids, ang)[:, -1]
+        d = distance(step)
+        best = int(np.argmin(d))
+        if d[best] >= distance(cur) - params.tol_xy:
+            break
+        seq_ids.append(ids[best])
+        seq_ang.append(ang[best])
+        cur = step[best]
+    return _failure(pose_a, NO_SEQUENCE)
+
+
 def planar_motion(X_a: np.ndarray, X_b: np.ndarray, params: Params = Params()) -> np.ndarray | None:
     """The planar pose ``(x, y, yaw)`` of ``X_WT = X_b @ inv(X_a)``, or None when it is not planar.
 
@@ -367,7 +420,7 @@ def on_table_tolerance(corners_O: np.ndarray, params: Params = Params()) -> floa
 
 
 def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
-                  params: Params = Params(), face_O: np.ndarray | None = None) -> Connection:
+                  params: Params = Params(), face_O: np.ndarray | None = None, strides: int = 0) -> Connection:
     """Shortest pivot sequence between two world poses of the object on the same placement.
 
     Parameters
@@ -382,6 +435,9 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
     face_O : (m, 3) float, optional
         The support face's vertices (m, O), whose spread sets that tolerance when ``corners_O`` are
         some of its corners only (default ``corners_O``).
+    strides : int
+        0: the closed form (:func:`connect_planar`, at most ``max_pivots`` pivots); else the pivot walk
+        of at most that many strides before it (:func:`walk_planar`).
 
     Returns
     -------
@@ -406,7 +462,10 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
     if pose_b is None:
         return Connection(False, np.zeros(0, dtype=int), np.zeros(0), X_a[None].copy(), np.inf, DIFFERENT_PLACEMENT)
     # Planar frame = world at X_a: the start is the origin and the corners are their world positions.
-    c = connect_planar(np.zeros(3), pose_b, p_WC[:, :2], params)
+    if strides:
+        c = walk_planar(np.zeros(3), pose_b, p_WC[:, :2], params, strides)
+    else:
+        c = connect_planar(np.zeros(3), pose_b, p_WC[:, :2], params)
     X = np.empty((c.n_pivots + 1, 4, 4))
     X[0] = X_a
     for i, (ci, a) in enumerate(zip(c.corners, c.angles, strict=True)):

@@ -94,6 +94,11 @@ class Params:
     join_alternatives: int = 3
     tree_candidates: int = 80
     yaw_weight: float = 0.2
+    #: Where no closed-form join is made (the goal's, or between the lattices), the ``walk_candidates``
+    #: nearest are tried again by a pivot walk of at most ``walk_strides`` two-pivot strides before
+    #: the closed form (``connect.walk_planar``); 0: closed form only.
+    walk_strides: int = 6
+    walk_candidates: int = 20
     #: After its ``max_poses`` breadth first and the goal's joins, the start's lattice grows on from its
     #: unexpanded poses on the start's and the goal's placements by ``goal_reach_share`` of ``max_poses``
     #: kept poses more, by weighted A* toward the goal: path length from the start plus ``goal_bias``
@@ -567,11 +572,20 @@ def _join_goal(lat: _Lattice, goal: int, among, params: Params) -> int:
             firsts.append(i)
     cand = firsts[: params.goal_candidates] + [i for i in cand[: params.goal_candidates] if i not in firsts]
     joined = 0
-    for i in cand:  # a few dozen closed-form solves
-        joined += _connect(lat, lat.corners, i, X_goal, g_goal, params) == goal
-        if joined >= params.goal_connections:
+    for strides, tries in _join_passes(params, len(cand)):
+        for i in cand[:tries]:  # a few dozen closed-form solves, then a few walks
+            joined += _connect(lat, lat.corners, i, X_goal, g_goal, params, strides) == goal
+            if joined >= params.goal_connections:
+                return joined
+        if joined:
             break
     return joined
+
+
+def _join_passes(params: Params, n: int) -> list[tuple[int, int]]:
+    """The joins' passes ``(strides, candidates tried)``: the closed form over all ``n``, then, where it
+    joined nothing, the pivot walk over the ``walk_candidates`` nearest (``walk_strides``)."""
+    return [(0, n)] + ([(params.walk_strides, params.walk_candidates)] if params.walk_strides > 0 else [])
 
 
 def _nearness(key: tuple, others: np.ndarray, params: Params) -> float:
@@ -625,12 +639,15 @@ def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
     cost = np.where(key[a, 0][:, None] == key[b, 0][None], d + params.yaw_weight * dyaw, np.inf)
     order = np.argsort(cost, axis=None, kind="stable")[: params.tree_candidates]
     joined = 0
-    for flat in order:  # a few dozen closed-form solves
-        i, j = a[flat // len(b)], b[flat % len(b)]
-        if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
+    for strides, tries in _join_passes(params, len(order)):
+        for flat in order[:tries]:  # a few dozen closed-form solves, then a few walks
+            i, j = a[flat // len(b)], b[flat % len(b)]
+            if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
+                break
+            cs = _held(lat.corners, rows[j]["g"], (int(i), int(j)), usable)
+            joined += _connect(lat, cs, int(i), rows[j]["X"], rows[j]["g"], params, strides) == j
+        if joined:
             break
-        cs = _held(lat.corners, rows[j]["g"], (int(i), int(j)), usable)
-        joined += _connect(lat, cs, int(i), rows[j]["X"], rows[j]["g"], params) == j
     return joined
 
 
@@ -646,35 +663,37 @@ def _held(corners: list[np.ndarray], g: int, rows: tuple[int, ...], usable: dict
     return [*corners[:g], ids, *corners[g + 1:]]
 
 
-def _connect(lat: _Lattice, corners, i: int, X_to: np.ndarray, g: int, params: Params) -> int:
+def _connect(lat: _Lattice, corners, i: int, X_to: np.ndarray, g: int, params: Params, strides: int = 0) -> int:
     """Pivot from kept pose ``i`` to ``X_to`` on placement ``g`` by up to three closed-form pivots
     (``stages.connect``), adding the poses on the way; then by the best sequence that avoids each
     corner the first one used, in turn, up to ``join_alternatives`` more (which corners a grasp
     holds is known only later, so one corner no reachable grasp holds would sink every join through
-    it). Returns the last kept pose the first sequence reached (``i`` when none, or when a pivot is
-    too small to be kept apart from its parent)."""
+    it). With ``strides``, by a pivot walk (``connect.walk_planar``) instead. Returns the last kept pose
+    the first sequence reached (``i`` when none, or when a pivot is too small to be kept apart from
+    its parent)."""
     ids = corners[g]
-    first = _connect_via(lat, i, X_to, g, ids, params)
+    first = _connect_via(lat, i, X_to, g, ids, params, strides)
     if first is None:
         return i
     used, end = first
     for c in used[: params.join_alternatives]:
-        _connect_via(lat, i, X_to, g, ids[ids != c], params)
+        _connect_via(lat, i, X_to, g, ids[ids != c], params, strides)
     return end
 
 
-def _connect_via(lat: _Lattice, i: int, X_to: np.ndarray, g: int, ids: np.ndarray, params: Params):
+def _connect_via(lat: _Lattice, i: int, X_to: np.ndarray, g: int, ids: np.ndarray, params: Params,
+                 strides: int = 0):
     """:func:`_connect` over the corners ``ids`` only: ``(corners used, last kept pose)`` or None."""
     model, rows, add = lat.model, lat.rows, lat.add
     if len(ids) == 0:
         return None
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
         max_angle=params.goal_max_angle, face_tilt=params.face_tilt),
-        face_O=model.vertices[np.asarray(model.support[g], dtype=np.int64)])
+        face_O=model.vertices[np.asarray(model.support[g], dtype=np.int64)], strides=strides)
     if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
         return None
     prev = i
-    for step in range(len(conn.angles)):  # at most three pivots
+    for step in range(len(conn.angles)):  # three pivots, more on a walk
         X = np.asarray(X_to, dtype=float) if step == len(conn.angles) - 1 else conn.poses[step + 1]
         j, _ = add(X, g, prev, "pivot", int(ids[conn.corners[step]]), (-1, -1), float(conn.angles[step]))
         if rows[j]["status"] != "ok":

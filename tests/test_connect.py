@@ -307,3 +307,17 @@ def test_some_corners_of_a_face_get_the_whole_faces_flatness():
         connect.connect_poses(X_a, X_b, one, P)
     c = connect.connect_poses(X_a, X_b, one, P, face_O=corners_O)
     assert c.ok and c.n_pivots == 1
+
+
+def test_a_pivot_walk_reaches_what_three_pivots_cannot_with_bounded_pivots():
+    """A triangle base 0.1 m across, a goal 0.3 m away turned 60°: beyond the closed form (three pivots
+    of at most 30° move it a few cm); the walk reaches it exactly by exact pivots within the bound."""
+    c = np.array([[0.05, 0.03], [-0.05, 0.03], [0.0, -0.05]])
+    goal = np.array([0.3, 0.05, np.radians(60.0)])
+    assert not connect.connect_planar(np.zeros(3), goal, c).ok
+    walk = connect.walk_planar(np.zeros(3), goal, c, strides=12)
+    assert walk.ok and walk.n_pivots > 3
+    assert np.all(np.abs(walk.angles) <= connect.Params().max_angle + 1e-12)
+    end = connect.apply_pivots(np.zeros(3), c, walk.corners, walk.angles)[-1]
+    assert np.allclose(end[:2], goal[:2], atol=1e-6) and abs(connect.wrap_angle(end[2] - goal[2])) <= 1e-8
+    assert not connect.walk_planar(np.zeros(3), goal, c, strides=2).ok  # too few strides: refused

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from stages import analyze, poses, se3
+from stages import analyze, connect, poses, se3
 from stages.scene import ObstacleGeometry
 
 BOX = (0.2, 0.3, 0.4)
@@ -311,15 +311,32 @@ def test_a_goal_the_start_lattice_cannot_join_is_reached_by_a_lattice_grown_from
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
-    prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0)
+    prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0, walk_strides=0)
     alone = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     assert not _pose_graph_connects(alone)
-    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0)
+    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0, walk_strides=0)
     both = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     assert _pose_graph_connects(both)
     assert np.array_equal(both.X_WO[: len(alone.X_WO)], alone.X_WO)  # the start's lattice is unchanged
     for a, b in both.links:  # every join is an exact pivot about a vertex that stays on the table
         assert both.status[a] == "ok" and both.status[b] == "ok"
+
+
+def test_a_goal_beyond_every_closed_form_join_is_reached_by_a_pivot_walk():
+    """The same goal with the start's 30 poses alone: no three-pivot join reaches it, the pivot walk
+    (``walk_strides``) does, by exact pivots about corners on the table, each within the bound."""
+    model = box_model()
+    X0, g = upright(model)
+    Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
+    prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0, walk_strides=12)
+    walked = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
+    assert _pose_graph_connects(walked)
+    pivots = walked.links[walked.link_primitive == "pivot"]
+    assert len(pivots)
+    for a, b in pivots:
+        assert walked.status[a] == "ok" and walked.status[b] == "ok"
+        rel = connect.planar_motion(walked.X_WO[a], walked.X_WO[b])
+        assert rel is not None and abs(rel[2]) <= prm.goal_max_angle + 1e-9
 
 
 def test_a_goal_on_an_uneven_base_face_joins_the_lattice():
@@ -393,7 +410,7 @@ def test_the_goals_lattice_grown_toward_the_start_meets_it_where_breadth_first_d
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.55, 0.0), yaw=np.radians(60))
-    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0)
+    prm = poses.Params(max_poses=30, goal_tree_share=2, goal_reach_share=0, walk_strides=0)
     assert _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
     monkeypatch.setattr(poses, "_nearness", lambda key, others, params: 0.0)
     assert not _pose_graph_connects(poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g)))
@@ -409,7 +426,7 @@ def test_the_starts_lattice_grown_on_toward_the_goal_by_weighted_a_star_reaches_
     Xg, _ = upright(model, xy=(0.5, 0.1))
 
     def sample(max_poses, share):
-        prm = poses.Params(max_poses=max_poses, goal_tree_share=0, goal_reach_share=share)
+        prm = poses.Params(max_poses=max_poses, goal_tree_share=0, goal_reach_share=share, walk_strides=0)
         return poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
 
     def nearest(ps):  # the kept pose on the goal's face nearest the goal, CoM in plan view (m)
@@ -517,7 +534,8 @@ def test_extend_lattice_pivots_known_poses_only_about_the_corners_their_grasps_h
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.3, 0.0))
-    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0)
+    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0,
+                       walk_strides=0)
     lat = poses.build_lattice(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     assert lat.goal_id >= 0
     held = int(poses.pivot_corners(model, prm.corner_cluster, prm.tilt)[g][0])
@@ -540,7 +558,8 @@ def test_extend_lattice_with_no_corner_held_pivots_nowhere_from_that_pose():
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.3, 0.0))
-    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0)
+    prm = poses.Params(max_poses=1, goal_tree_share=0, goal_reach_share=0, join_alternatives=0, tree_joins=0,
+                       walk_strides=0)
     lat = poses.build_lattice(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
     poses.extend_lattice(lat, [0], [lat.goal_id], {0: np.zeros(0, np.int64)}, budget=30)
     ps = lat.pose_set()
