@@ -342,18 +342,19 @@ def connect_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray,
 
 
 def walk_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray, params: Params = Params(),
-                strides: int = 6, grid: int = 7) -> Connection:
+                strides: int = 12, grid: int = 7, stride_angle: float | None = None) -> Connection:
     """A pivot walk from ``pose_a`` to ``pose_b`` (planar, m, m, rad) beyond the closed form's reach.
 
     The quasi-static pivot gait of §5.1 (Fig. 7) steered greedily: each stride is two pivots about two
     different ``corners (k, 2)`` (m, planar frame), the pair and angles (``grid`` values in
-    ``[-max_angle, max_angle]``) that bring the pose nearest ``pose_b`` (the corners' centroid in plan
-    view plus half the corners' spread in m per rad of heading), until :func:`connect_planar` finishes
-    from the pose reached; at most ``strides`` strides, and a stride that brings it no nearer ends the
-    walk. §5.3 joins poses within three pivots ([18]'s neighbourhood); the walk joins lattices whose
-    nearest poses lie several pivots apart (a small base moves a few cm per pivot). Greedy: it may
-    miss a sequence that exists. Two pivots in a row may share a corner where a stride meets the next
-    or the closed form (two bounded pivots, each exact).
+    ``[-stride_angle, stride_angle]``, default ``max_angle``) that bring the pose nearest ``pose_b``
+    (the corners' centroid in plan view plus half the corners' spread in m per rad of heading), until
+    :func:`connect_planar` finishes from the pose reached; at most ``strides`` strides, and a stride
+    that brings it no nearer ends the walk. §5.3 joins poses within three pivots ([18]'s
+    neighbourhood); the walk joins lattices whose nearest poses lie several pivots apart (a small
+    base moves a few cm per pivot). Greedy: it may miss a sequence that exists. Two pivots in a row
+    may share a corner where a stride meets the next or the closed form (two bounded pivots, each
+    exact).
     """
     pose_a, pose_b = np.asarray(pose_a, dtype=float), np.asarray(pose_b, dtype=float)
     corners = np.asarray(corners, dtype=float)
@@ -370,7 +371,8 @@ def walk_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray, par
     pairs = corner_sequences(k, 2)
     if not len(pairs):  # one corner: no stride
         return connect_planar(pose_a, pose_b, corners, params)
-    a = np.linspace(-params.max_angle, params.max_angle, grid)
+    bound = params.max_angle if stride_angle is None else min(stride_angle, params.max_angle)
+    a = np.linspace(-bound, bound, grid)
     ids = np.repeat(pairs, grid * grid, axis=0)                                    # (P * g^2, 2)
     ang = np.tile(np.stack(np.meshgrid(a, a, indexing="ij"), -1).reshape(-1, 2), (len(pairs), 1))
     seq_ids, seq_ang, cur = [], [], pose_a
@@ -420,7 +422,8 @@ def on_table_tolerance(corners_O: np.ndarray, params: Params = Params()) -> floa
 
 
 def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
-                  params: Params = Params(), face_O: np.ndarray | None = None, strides: int = 0) -> Connection:
+                  params: Params = Params(), face_O: np.ndarray | None = None, strides: int = 0,
+                  stride_angle: float | None = None) -> Connection:
     """Shortest pivot sequence between two world poses of the object on the same placement.
 
     Parameters
@@ -437,7 +440,7 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         some of its corners only (default ``corners_O``).
     strides : int
         0: the closed form (:func:`connect_planar`, at most ``max_pivots`` pivots); else the pivot walk
-        of at most that many strides before it (:func:`walk_planar`).
+        of at most that many strides before it (:func:`walk_planar`), its pivots within ``stride_angle``.
 
     Returns
     -------
@@ -463,7 +466,7 @@ def connect_poses(X_a: np.ndarray, X_b: np.ndarray, corners_O: np.ndarray,
         return Connection(False, np.zeros(0, dtype=int), np.zeros(0), X_a[None].copy(), np.inf, DIFFERENT_PLACEMENT)
     # Planar frame = world at X_a: the start is the origin and the corners are their world positions.
     if strides:
-        c = walk_planar(np.zeros(3), pose_b, p_WC[:, :2], params, strides)
+        c = walk_planar(np.zeros(3), pose_b, p_WC[:, :2], params, strides, stride_angle=stride_angle)
     else:
         c = connect_planar(np.zeros(3), pose_b, p_WC[:, :2], params)
     X = np.empty((c.n_pivots + 1, 4, 4))

@@ -7,8 +7,10 @@ them in this order; ``causes`` lists every one that holds and ``cause`` is the f
    left standing there alone);
 2. ``start_has_no_grasp``, ``goal_has_no_grasp``: every (pose, pair) candidate there was refused;
    ``rejected`` counts them by reason family (``ik_unreachable``, ``env_collision``, ...);
-3. ``no_tumble_to_goal_face``: the goal lies on another face and no tumble link of the lattice lands
-   on it (or the ``no_tumble`` ablation); ``pusher_out_of_reach`` / ``tumble_rejected``: tumble edges
+3. ``no_roll_to_goal_face``: the goal lies on another face and no sequence of tumbles leads from the
+   start's face to it whatever the poses (``sample.json``'s ``face_route``, ``stages.poses.face_route``:
+   every roll toward it falls back or rolls on); ``no_tumble_to_goal_face``: no tumble link of the
+   lattice lands on it (or the ``no_tumble`` ablation); ``pusher_out_of_reach`` / ``tumble_rejected``: tumble edges
    land on it but every one is refused, mostly for the pusher (``ik_unreachable``, ``joint_limit``,
    ``no_pusher_contact``) or for something else (the catch, a collision);
 4. ``goal_not_connected``: the goal pose is not in the start's component of the lattice (pivot and
@@ -45,6 +47,7 @@ REASONS = {
     "goal_not_sp": "the goal pose is not SP",
     "start_has_no_grasp": "the start pose has no grasp",
     "goal_has_no_grasp": "the goal pose has no grasp",
+    "no_roll_to_goal_face": "no sequence of tumbles leads from the start's face to the goal's",
     "no_tumble_to_goal_face": "no tumble reaches the goal's face",
     "pusher_out_of_reach": "the pushing arm cannot reach the tumbles that lead on",
     "tumble_rejected": "the tumbles that lead on are rejected",
@@ -62,8 +65,9 @@ PUSHER_REASONS = ("ik_unreachable", "joint_limit", "no_pusher_contact")
 @dataclass(frozen=True)
 class Tables:
     """The artifacts a diagnosis reads: ``nodes``, ``edges`` (graph), ``poses``, ``links``
-    (``pose_links``), ``rejects`` (``grasp_rejects``) of the sample, and the goal's pose id (-1 when
-    the sampler has none)."""
+    (``pose_links``), ``rejects`` (``grasp_rejects``) of the sample, the goal's pose id (-1 when
+    the sampler has none) and ``face_route``, the sample's placements from the start's face to the
+    goal's (``[]``: no sequence of tumbles leads there)."""
 
     nodes: Table
     edges: Table
@@ -71,6 +75,7 @@ class Tables:
     links: Table
     rejects: Table
     goal_pose: int
+    face_route: list
 
 
 def family(reason: str) -> str:
@@ -138,7 +143,8 @@ def tumble_cause(rejected: dict[str, int]) -> str:
 
 def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -> tuple[dict, str | None]:
     """Tumble links and edges landing on placement ``face`` from another, and the cause they give
-    (None when an edge lands there)."""
+    (None when an edge lands there, ``no_roll_to_goal_face`` when no tumbles lead from the start's
+    face to it at all)."""
     g = t.poses["placement_id"]
     la, lb = t.links["pose_a"], t.links["pose_b"]
     links = int(np.count_nonzero((t.links["primitive"] == "tumble") & (g[lb] == face) & (g[la] != face)))
@@ -146,12 +152,14 @@ def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -
     onto = (t.edges["primitive"] == "tumble") & (g[pose[t.edges["node_b"]]] == face)
     ok = int(np.count_nonzero(onto & (status == "ok")))
     rejected = count_reasons(status[onto & (status != "ok")])
-    if no_tumble or links == 0:
+    if not t.face_route:
+        why = "no_roll_to_goal_face"
+    elif no_tumble or links == 0:
         why = "no_tumble_to_goal_face"
     else:
         why = None if ok else tumble_cause(rejected) if rejected else "no_tumble_to_goal_face"
     return {"links": links, "edges_ok": ok, "edges_rejected": rejected, "no_tumble": bool(no_tumble),
-            "cause": why}, why
+            "face_route": [int(g) for g in t.face_route], "cause": why}, why
 
 
 def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
@@ -268,6 +276,9 @@ def detail(cause: str, d: dict) -> str:
         w = cause.split("_")[0]
         return f"{w} pose: 0 grasps of {d[w]['candidates']} candidates ({_top(d[w]['rejected'])})"
     f = d.get("tumbles_onto_goal_face", {})
+    if cause == "no_roll_to_goal_face":
+        return (f"goal on placement {d['goal']['placement_id']}, start on {d['start']['placement_id']}: no roll "
+                "over a support edge of the faces tumbles reach from the start's lands on the goal's")
     if f.get("cause") == cause:
         off = ", tumbling switched off" if f["no_tumble"] else ""
         return (f"goal on placement {d['goal']['placement_id']}, start on {d['start']['placement_id']}: "

@@ -730,7 +730,8 @@ def _infeasible(ctx: _Context, params: Params, G: nx.DiGraph, start: int, goal: 
                 prefix: str) -> dict:
     """The infeasible plan: ``reason`` is ``prefix`` and the diagnosed cause's fixed phrase (a stable
     reason code), ``diagnosis`` the cause with its counts (``stages.diagnosis``)."""
-    t = diagnosis.Tables(ctx.nodes, ctx.edges, ctx.poses, ctx.links, ctx.rejects, int(ctx.sample["goal"]["pose_id"]))
+    t = diagnosis.Tables(ctx.nodes, ctx.edges, ctx.poses, ctx.links, ctx.rejects, int(ctx.sample["goal"]["pose_id"]),
+                         ctx.sample["face_route"])
     removed = {int(r["edge_id"]): str(r["reason"]) for r in log}
     d = diagnosis.diagnose(t, G, start, goal, ablated_edges(ctx.nodes, ctx.edges, params, start, goal), removed,
                            no_tumble=params.no_tumble, no_usp=params.no_usp)

@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import fcl
+import networkx as nx
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
@@ -94,10 +95,10 @@ class Params:
     join_alternatives: int = 3
     tree_candidates: int = 80
     yaw_weight: float = 0.2
-    #: Where no closed-form join is made (the goal's, or between the lattices), the ``walk_candidates``
-    #: nearest are tried again by a pivot walk of at most ``walk_strides`` two-pivot strides before
-    #: the closed form (``connect.walk_planar``); 0: closed form only.
-    walk_strides: int = 6
+    #: The last resort of the grasp-aware reach (:func:`walk_lattice`): the ``walk_candidates`` nearest
+    #: pairs joined by a pivot walk of at most ``walk_strides`` two-pivot strides, each pivot at most
+    #: ``theta_t`` (the lattice's own step), before the closed form (``connect.walk_planar``); 0: none.
+    walk_strides: int = 12
     walk_candidates: int = 20
     #: After its ``max_poses`` breadth first and the goal's joins, the start's lattice grows on from its
     #: unexpanded poses on the start's and the goal's placements by ``goal_reach_share`` of ``max_poses``
@@ -341,6 +342,19 @@ def build_lattice(model: ObjectModel, X_WO_start: np.ndarray, start_placement: i
     return lat
 
 
+def walk_lattice(lat: _Lattice, start_side: list[int], goal_side: list[int]) -> int:
+    """The grasp-aware reach's last resort (``stages.sample``): join the poses the start reaches
+    (``start_side``, row ids) to those the goal reaches (``goal_side``, the goal first) by pivot walks
+    (``Params.walk_strides``, ``connect.walk_planar``) where no closed-form join or grown lattice met
+    them. A small base moves a few cm per pivot, so lattices a decimetre apart never meet by three
+    pivots. A walk may pivot about any corner: the grasps of its poses, and so which corners they
+    hold, are refined after it. Returns the joins made."""
+    start_side = [i for i in start_side if lat.rows[i]["status"] == "ok"]
+    if not start_side or not goal_side or lat.params.walk_strides <= 0:
+        return 0
+    return _join_trees(lat, start_side, list(goal_side), lat.params, None, lat.params.walk_strides)
+
+
 def extend_lattice(lat: _Lattice, start_side: list[int], goal_side: list[int], usable: dict[int, np.ndarray],
                    budget: int) -> None:
     """Grasp-aware reach (our addition to §5.1, §5.3): grow the lattice from the poses the start reaches
@@ -382,6 +396,7 @@ class _Lattice:
         self.index: dict[tuple, list[int]] = {}
         self.share: dict[int, float] = {}  # expansions per turn of the placements (module docstring)
         self.goal_id = -1
+        self.walks = 0  # joins made by a pivot walk (:func:`_connect_via`)
 
     def pose_set(self) -> PoseSet:
         """The lattice's poses and links so far (row id = pose id)."""
@@ -572,20 +587,11 @@ def _join_goal(lat: _Lattice, goal: int, among, params: Params) -> int:
             firsts.append(i)
     cand = firsts[: params.goal_candidates] + [i for i in cand[: params.goal_candidates] if i not in firsts]
     joined = 0
-    for strides, tries in _join_passes(params, len(cand)):
-        for i in cand[:tries]:  # a few dozen closed-form solves, then a few walks
-            joined += _connect(lat, lat.corners, i, X_goal, g_goal, params, strides) == goal
-            if joined >= params.goal_connections:
-                return joined
-        if joined:
+    for i in cand:  # a few dozen closed-form solves
+        joined += _connect(lat, lat.corners, i, X_goal, g_goal, params) == goal
+        if joined >= params.goal_connections:
             break
     return joined
-
-
-def _join_passes(params: Params, n: int) -> list[tuple[int, int]]:
-    """The joins' passes ``(strides, candidates tried)``: the closed form over all ``n``, then, where it
-    joined nothing, the pivot walk over the ``walk_candidates`` nearest (``walk_strides``)."""
-    return [(0, n)] + ([(params.walk_strides, params.walk_candidates)] if params.walk_strides > 0 else [])
 
 
 def _nearness(key: tuple, others: np.ndarray, params: Params) -> float:
@@ -617,7 +623,7 @@ def _step_cost(a: tuple, b: tuple, params: Params) -> float:
 
 
 def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
-                usable: dict[int, np.ndarray] | None = None) -> int:
+                usable: dict[int, np.ndarray] | None = None, strides: int = 0) -> int:
     """Join kept poses ``b`` (the goal and the lattice grown from it) to kept poses ``a`` (the start's
     lattice, or the part of it grown toward the goal) by up to three pivots (``stages.connect``)
     between the nearest pairs of poses on one placement, nearest first (CoM distance plus
@@ -628,6 +634,7 @@ def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
     they pass; a lattice grown from the goal as well gives the search many more places to meet (§5.3's
     graph search then picks among them, with the motion checks deciding). With ``usable`` (row id -> hull
     vertex ids its grasps hold), a join pivots only about the corners both its ends hold, where known.
+    With ``strides``, the ``walk_candidates`` nearest pairs are joined by pivot walks instead.
     """
     rows = lat.rows
     a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
@@ -637,17 +644,14 @@ def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
     d = np.hypot(key[a, 1][:, None] - key[b, 1][None], key[a, 2][:, None] - key[b, 2][None])
     dyaw = np.abs((key[a, 3][:, None] - key[b, 3][None] + np.pi) % (2 * np.pi) - np.pi)
     cost = np.where(key[a, 0][:, None] == key[b, 0][None], d + params.yaw_weight * dyaw, np.inf)
-    order = np.argsort(cost, axis=None, kind="stable")[: params.tree_candidates]
+    order = np.argsort(cost, axis=None, kind="stable")[: params.walk_candidates if strides else params.tree_candidates]
     joined = 0
-    for strides, tries in _join_passes(params, len(order)):
-        for flat in order[:tries]:  # a few dozen closed-form solves, then a few walks
-            i, j = a[flat // len(b)], b[flat % len(b)]
-            if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
-                break
-            cs = _held(lat.corners, rows[j]["g"], (int(i), int(j)), usable)
-            joined += _connect(lat, cs, int(i), rows[j]["X"], rows[j]["g"], params, strides) == j
-        if joined:
+    for flat in order:  # a few dozen closed-form solves, or a few walks
+        i, j = a[flat // len(b)], b[flat % len(b)]
+        if not np.isfinite(cost.flat[flat]) or joined >= params.tree_joins:
             break
+        cs = _held(lat.corners, rows[j]["g"], (int(i), int(j)), usable)
+        joined += _connect(lat, cs, int(i), rows[j]["X"], rows[j]["g"], params, strides) == j
     return joined
 
 
@@ -689,9 +693,11 @@ def _connect_via(lat: _Lattice, i: int, X_to: np.ndarray, g: int, ids: np.ndarra
         return None
     conn = connect.connect_poses(rows[i]["X"], X_to, model.vertices[ids], connect.Params(
         max_angle=params.goal_max_angle, face_tilt=params.face_tilt),
-        face_O=model.vertices[np.asarray(model.support[g], dtype=np.int64)], strides=strides)
+        face_O=model.vertices[np.asarray(model.support[g], dtype=np.int64)], strides=strides,
+        stride_angle=params.theta_t)
     if not conn.ok or np.any(np.abs(conn.angles) < 10 * params.merge_yaw):
         return None
+    lat.walks += bool(strides)
     prev = i
     for step in range(len(conn.angles)):  # three pivots, more on a walk
         X = np.asarray(X_to, dtype=float) if step == len(conn.angles) - 1 else conn.poses[step + 1]
@@ -802,6 +808,28 @@ def _successors(model, corners, X, g, half, params):
         if done is not None:
             out.append((done[0], done[1], "tumble", -1, (int(a), int(b)), done[2]))
     return out
+
+
+def face_route(model: ObjectModel, start: int, goal: int, min_edge: float) -> list[int]:
+    """The fewest tumbles' sequence of placements from ``start`` to ``goal`` (ids, both included;
+    ``[start]`` when they are one), ``[]`` when no sequence of tumbles leads there.
+
+    A tumble's landing face depends on neither the heading nor the place (the roll is the same in the
+    object's frame), so the placements and the tumbles between them form a small directed graph
+    (§5.1, Fig. 8): an arc g -> h when the object resting on the stable placement g rolls over one of
+    its support edges at least ``min_edge`` long (m) onto h (:func:`_tumble`, the lattice's tumbles).
+    A roll is not reversible in general: the roll back over the same edge may fall back, or on."""
+    G = nx.DiGraph()
+    G.add_nodes_from([int(start), int(goal)])
+    for g in np.flatnonzero(model.stable).tolist():
+        for e in np.flatnonzero((model.edge_faces == g).any(axis=1)).tolist():
+            a, b = model.vertices[model.edges[e]]
+            if np.linalg.norm(b - a) >= min_edge and (done := _tumble(model, model.X_TO[g], g, e)) is not None:
+                G.add_edge(g, done[1])
+    try:
+        return [int(g) for g in nx.shortest_path(G, int(start), int(goal))]
+    except nx.NetworkXNoPath:
+        return []
 
 
 def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarray, primitive: str, vertex: int,
@@ -955,19 +983,26 @@ ROLL_ALIGN = np.radians(1.0)
 
 
 def _settle(model: ObjectModel, X: np.ndarray, g: int) -> np.ndarray:
-    """``X`` turned by the least rotation that lays face ``g`` exactly on the table (its outward normal
-    straight down, its lowest support vertex at z = 0): where gravity settles a roll that ends within
-    ``ROLL_ALIGN`` of it. Exact input comes back unchanged."""
+    """``X`` turned by the least rotation that lays face ``g`` on the table (its outward normal straight
+    down, about its lowest support vertex): where gravity settles a roll that ends within
+    ``ROLL_ALIGN`` of it; then put at the height the analysis rests that face at (``X_TO``, whose
+    turns about the vertical and shifts are every other pose of the placement), the CoM's plan-view
+    place kept. A face merged from hull triangles within ``hull_coplanar_deg`` is flat only to a
+    fraction of a millimetre, and two conventions for its height would make poses of one placement
+    differ by more than a planar motion (``connect.planar_motion``), so that no pivot could join them.
+    Exact input comes back unchanged up to round-off."""
     n = se3.rotate_vectors(X, model.normals[g])
     axis = np.cross(n, [0.0, 0.0, -1.0])
-    if np.linalg.norm(axis) < 1e-12:
-        return X
-    sup = se3.transform_points(X, model.vertices[np.asarray(model.support[g])])
-    p = sup[np.argmin(sup[:, 2])]
-    T = se3.transform_about_line(p, axis / np.linalg.norm(axis), float(np.arctan2(np.linalg.norm(axis), -n[2])))
-    out = T @ X
-    out[2, 3] -= se3.transform_points(out, model.vertices[np.asarray(model.support[g])])[:, 2].min()
-    return out
+    out = np.array(X, dtype=float)
+    if np.linalg.norm(axis) >= 1e-12:
+        sup = se3.transform_points(X, model.vertices[np.asarray(model.support[g])])
+        p = sup[np.argmin(sup[:, 2])]
+        angle = float(np.arctan2(np.linalg.norm(axis), -n[2]))
+        out = se3.transform_about_line(p, axis / np.linalg.norm(axis), angle) @ X
+    rest = model.X_TO[g]
+    snapped = se3.make_transform(se3.rot_z(se3.yaw_of(out[:3, :3] @ rest[:3, :3].T)), np.zeros(3)) @ rest
+    snapped[:2, 3] += se3.transform_points(out, model.com)[:2] - se3.transform_points(snapped, model.com)[:2]
+    return snapped
 
 
 def held_com(poly: np.ndarray, com_W: np.ndarray, margin: float) -> np.ndarray:

@@ -10,7 +10,10 @@ Reads the scene and the analysis; writes
   larger world y, right ball on the other) that passes the grasp refinement of §4.2–4.3, with both
   arms' joint vectors and the stability margins,
 - ``grasp_rejects.parquet``: every refused (pose, pair) candidate with its reason code,
-- ``sample.json``: counts per status and reason.
+- ``sample.json``: counts per status and reason, and ``face_route``: the placements of the fewest
+  tumbles from the start's face to the goal's (``poses.face_route``; ``[]`` when no sequence of tumbles
+  leads there, which the plan's diagnosis reports as such) and ``walk_joins``, the joins the lattice
+  made by a pivot walk (``poses.Params.walk_strides``).
 
 A start or goal that cannot be a pose (``poses.describe_pose``: off the table's edge, unstable, or
 in an obstacle or the robot's trunk) is bad input: an ``InputError`` that names what it hits.
@@ -622,44 +625,76 @@ class _Reached(NamedTuple):
     rounds: int
 
 
+def _sides(G: nx.Graph, goal: int) -> tuple[list[int], list[int]]:
+    """The poses the start reaches in the reach graph ``G`` and those the goal reaches (the goal first)."""
+    return sorted(nx.node_connected_component(G, 0)), [goal, *sorted(nx.node_connected_component(G, goal) - {goal})]
+
+
+def _goal_reached(scene, model, tables, arms: tuple, ps, grasps, reach: tuple, gp, verified: dict,
+                  params: Params) -> bool:
+    """Whether the start reaches the goal along links whose pivots pass the graph's checks
+    (:func:`lazy_reach` over ``reach`` = (reach graph, link candidates); ``arms`` = (robot, collision
+    function); ``verified`` carried between rounds)."""
+    from stages import graph  # it imports this module's helpers, not this module
+
+    G, cands = reach
+    p_g, n_g = graph.grasp_geometry(tables, grasps, scene.robot.ball_radius)
+    q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
+    checks = graph.PivotChecks(scene, model, tables, *arms, ps.X_WO, ps.links, ps.link_vertex,
+                               ps.link_edge, [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]],
+                               p_g, n_g, q_g)
+    check = functools.partial(_check_links, graph, gp, checks, tables)
+    return lazy_reach(G, ps.goal_id, cands, check, verified, params.reach_walks)
+
+
+def _refine_more(scene, model, tables, ps, robot, collide, params: Params, rng, n0: int, grasps: dict,
+                 rejects: dict, timings: dict) -> tuple[dict, dict]:
+    """The grasps and rejects with those of the poses from row ``n0`` on refined and added (timings summed)."""
+    more = refine_grasps(scene, model, tables, ps, robot, collide, params, rng, np.arange(n0, len(ps.status)))
+    for k, v in more[2].items():
+        timings[k] = timings.get(k, 0.0) + v
+    return _concat(grasps, more[0]), _concat(rejects, more[1])
+
+
 def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, collide, params: Params, rng,
            found: tuple[dict, dict, dict]) -> _Reached:
     """Grasp-aware reach (``Params.reach_rounds``): while the goal is not reached by links whose pivots
     pass the graph stage's checks (:func:`lazy_reach`), grow the lattice on from the poses the start
     reaches toward those the goal reaches (``poses.extend_lattice``) and refine the new poses' grasps.
-    ``found`` is ``(grasps, rejects, timings)`` so far (timings updated in place)."""
+    When the rounds do not reach it, pivot walks join the two sides as a last resort
+    (``poses.walk_lattice``). ``found`` is ``(grasps, rejects, timings)`` so far (timings updated in
+    place)."""
     from stages import graph  # it imports this module's helpers, not this module
 
     grasps, rejects, timings = found
     gp = graph.Params()
     verified: dict = {}
-    ps = lattice.pose_set()
+    ps, reached = lattice.pose_set(), False
     for rounds in range(params.reach_rounds + 1):
         cands = link_candidates(ps, grasps, tumbles=placements[0] != placements[1])
         G = reach_graph(ps, cands)
-        if ps.goal_id < 0 or rounds == params.reach_rounds:
+        if ps.goal_id < 0:
             break
-        p_g, n_g = graph.grasp_geometry(tables, grasps, scene.robot.ball_radius)
-        q_g = np.stack([np.stack(grasps["q_left"]), np.stack(grasps["q_right"])], axis=1)
-        checks = graph.PivotChecks(scene, model, tables, robot, collide, ps.X_WO, ps.links, ps.link_vertex,
-                                   ps.link_edge, [set(np.asarray(v).tolist()) for v in grasps["pivot_vertices"]],
-                                   p_g, n_g, q_g)
-        check = functools.partial(_check_links, graph, gp, checks, tables)
-        if lazy_reach(G, ps.goal_id, cands, check, verified, params.reach_walks):
+        if reached := _goal_reached(scene, model, tables, (robot, collide), ps, grasps, (G, cands), gp, verified,
+                                    params):
+            break
+        if rounds == params.reach_rounds:
             break
         n0 = len(ps.status)
-        start_side = sorted(nx.node_connected_component(G, 0))
-        goal_side = [ps.goal_id, *sorted(nx.node_connected_component(G, ps.goal_id) - {ps.goal_id})]
-        poses.extend_lattice(lattice, start_side, goal_side, held_corners(grasps),
+        poses.extend_lattice(lattice, *_sides(G, ps.goal_id), held_corners(grasps),
                              int(np.ceil(params.reach_share * scene.planner.max_poses)))
         ps = lattice.pose_set()
         if not np.any(ps.status[n0:] == "ok"):
             rounds += 1
             break
-        more = refine_grasps(scene, model, tables, ps, robot, collide, params, rng, np.arange(n0, len(ps.status)))
-        grasps, rejects = _concat(grasps, more[0]), _concat(rejects, more[1])
-        for k, v in more[2].items():
-            timings[k] = timings.get(k, 0.0) + v
+        grasps, rejects = _refine_more(scene, model, tables, ps, robot, collide, params, rng, n0, grasps, rejects,
+                                       timings)
+    if ps.goal_id >= 0 and not reached:  # the last resort: pivot walks between the two sides
+        n0 = len(ps.status)
+        if poses.walk_lattice(lattice, *_sides(G, ps.goal_id)):
+            ps = lattice.pose_set()
+            grasps, rejects = _refine_more(scene, model, tables, ps, robot, collide, params, rng, n0, grasps,
+                                           rejects, timings)
     return _Reached(ps, grasps, rejects, rounds)
 
 
@@ -708,6 +743,8 @@ def compute(scene: Scene, analysis_dir: str | Path, params: Params) -> Result:
         "start": {"pose_id": 0, "placement_id": g0},
         "goal": {"pose_id": ps.goal_id, "placement_id": gg,
                  "status": "ok" if ps.goal_id >= 0 else "not_reached"},
+        "face_route": poses.face_route(model, g0, gg, params.min_tumble_edge),
+        "walk_joins": lattice.walks,
     }
     return Result(ps, grasps, rejects, summary, timings)
 

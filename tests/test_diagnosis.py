@@ -14,10 +14,11 @@ def table(**cols) -> Table:
     return Table({k: np.asarray(v) for k, v in cols.items()}, {})
 
 
-def toy(pivot12="ok", regrasp2="ok", pivot12_exists=True, support0="SP", goal_face=0):
+def toy(pivot12="ok", regrasp2="ok", pivot12_exists=True, support0="SP", goal_face=0, rolls=True):
     """Three poses in a row on placement 0 (the goal pose 2 on ``goal_face``), pivot links 0-1-2; a
     grasp node (0, 1, 2) and a free node (3, 4, 5) per pose (none for a USP pose); regrasp edges
-    grasp-free, pivot edges 0-1 and 1-2 (statuses as given). A stand-in for ``plan._Context``."""
+    grasp-free, pivot edges 0-1 and 1-2 (statuses as given); ``rolls``: tumbles lead from face 0 to
+    the goal's. A stand-in for ``plan._Context``."""
     sp = [support0 == "SP", True, True]
     free = [3 + k for k in range(sum(sp))]
     nodes = table(node_id=np.arange(3 + len(free)), kind=["grasp"] * 3 + ["free"] * len(free),
@@ -32,7 +33,8 @@ def toy(pivot12="ok", regrasp2="ok", pivot12_exists=True, support0="SP", goal_fa
     links = table(pose_a=[0, 1], pose_b=[1, 2], primitive=["pivot", "pivot"])
     rejects = table(pose_id=[0, 2, 2], reason=["ik_unreachable", "normal_away", "env_collision:a/b"])
     return SimpleNamespace(nodes=nodes, edges=edges, poses=poses, links=links, rejects=rejects,
-                           sample={"goal": {"pose_id": 2}})
+                           sample={"goal": {"pose_id": 2},
+                                   "face_route": ([0] if goal_face == 0 else [0, goal_face]) if rolls else []})
 
 
 def infeasible(ctx, params=plan.Params(), removed=()):  # noqa: B008 (frozen dataclass)
@@ -80,6 +82,14 @@ def test_a_goal_on_a_face_no_tumble_link_reaches_is_no_tumble_to_goal_face():
     d = infeasible(toy(goal_face=1))["diagnosis"]
     assert d["causes"] == ["no_tumble_to_goal_face"]
     assert d["tumbles_onto_goal_face"]["links"] == 0
+
+
+def test_a_goal_face_no_sequence_of_tumbles_leads_to_is_no_roll_to_goal_face():
+    p = infeasible(toy(goal_face=1, rolls=False))
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: no sequence of tumbles leads from the start's face to the goal's"
+    assert d["causes"][0] == "no_roll_to_goal_face" and d["tumbles_onto_goal_face"]["face_route"] == []
+    assert "no roll" in d["detail"]
 
 
 def test_an_ablation_counts_the_edges_it_drops():
@@ -133,7 +143,13 @@ def test_scene_goal_turned_away_from_the_arms_has_no_grasp(piano):
     assert d["cause"] == "goal_has_no_grasp" and d["start"]["grasps"] > 0 and d["goal"]["grasps"] == 0
 
 
-def test_scene_goal_beyond_a_small_lattice_is_not_connected(piano):
+def test_scene_goal_beyond_a_small_lattice_is_not_connected(piano, monkeypatch):
+    """Without the pivot walk's joins (``poses.Params.walk_strides``, which reach this goal)."""
+    import functools
+
+    from stages import poses
+
+    monkeypatch.setattr(poses, "Params", functools.partial(poses.Params, walk_strides=0))
     p = plan_scene(piano, "far", **{"goal.xy": [0.40, 0.0], "planner.max_poses": 20, "planner.goal_reach": 0})
     d = p["diagnosis"]
     assert p["reason"] == "no path in the graph: the goal pose is not connected to the start's pose lattice"
@@ -143,10 +159,15 @@ def test_scene_goal_beyond_a_small_lattice_is_not_connected(piano):
     assert d["causes"] == ["goal_not_connected"] and d["goal"]["grasps"] > 0 and 21 < d["lattice_poses"] <= 26 + 15
 
 
-def test_scene_goal_reach_grows_the_lattice_on_toward_the_goal(piano):
+def test_scene_goal_reach_grows_the_lattice_on_toward_the_goal(piano, monkeypatch):
     """planner.goal_reach reaches the sampler: the same 20-pose scene grows up to 40 poses more toward the
     goal 0.4 m away, beyond the breadth-first and the goal's lattices and the sampler's grasp-aware reach
-    (the same scene with goal_reach 0)."""
+    (the same scene with goal_reach 0; both without the pivot walks of the reach's last resort)."""
+    import functools
+
+    from stages import poses
+
+    monkeypatch.setattr(poses, "Params", functools.partial(poses.Params, walk_strides=0))
     far = plan_scene(piano, "far0", **{"goal.xy": [0.40, 0.0], "planner.max_poses": 20, "planner.goal_reach": 0})
     p = plan_scene(piano, "reach", **{"goal.xy": [0.40, 0.0], "planner.max_poses": 20, "planner.goal_reach": 2})
     assert p["diagnosis"]["lattice_poses"] > far["diagnosis"]["lattice_poses"] + 20

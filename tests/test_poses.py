@@ -73,7 +73,8 @@ def test_tumbling_a_box_lands_on_the_adjacent_face():
 def test_a_roll_onto_a_face_a_little_off_its_edge_settles_flat_on_it(off_deg, lands):
     # Merged hull faces meet at edges that are not exactly their planes' intersection: the side face's
     # normal turned by off_deg about the vertical. Within ROLL_ALIGN (1 deg) the roll lands and settles
-    # on that face (its normal straight down, its lowest corner on the table); beyond, it does not land.
+    # on that face as the analysis rests it (a turn and shift of its X_TO, so that every pose of the
+    # placement is a planar motion of every other); beyond, it does not land.
     from dataclasses import replace
     model = box_model()
     X0, g = upright(model)
@@ -89,7 +90,7 @@ def test_a_roll_onto_a_face_a_little_off_its_edge_settles_flat_on_it(off_deg, la
         return
     roll = poses.roll_segments(off, X0, a, b)
     assert roll.face == g2
-    np.testing.assert_allclose(se3.rotate_vectors(roll.X_end, normals[g2]), [0, 0, -1.0], atol=1e-12)
+    assert connect.planar_motion(off.X_TO[g2], roll.X_end) is not None
     sup = se3.transform_points(roll.X_end, off.vertices[np.asarray(off.support[g2])])
     assert sup[:, 2].min() == pytest.approx(0.0, abs=1e-12)
     # The settling turn is the small misalignment, not another roll.
@@ -323,20 +324,26 @@ def test_a_goal_the_start_lattice_cannot_join_is_reached_by_a_lattice_grown_from
 
 
 def test_a_goal_beyond_every_closed_form_join_is_reached_by_a_pivot_walk():
-    """The same goal with the start's 30 poses alone: no three-pivot join reaches it, the pivot walk
-    (``walk_strides``) does, by exact pivots about corners on the table, each within the bound."""
+    """The same goal with the start's 30 poses alone: no three-pivot join reaches it; the last resort's
+    pivot walks (:func:`poses.walk_lattice`) do, by exact pivots about corners on the table, each
+    within the lattice's step, and without them (``walk_strides=0``) nothing is joined."""
     model = box_model()
     X0, g = upright(model)
     Xg, _ = upright(model, xy=(0.45, 0.1), yaw=np.radians(100))
-    prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0, walk_strides=12)
-    walked = poses.sample_poses(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
-    assert _pose_graph_connects(walked)
+    for strides, joins in ((0, False), (12, True)):
+        prm = poses.Params(max_poses=30, goal_tree_share=0, goal_reach_share=0, walk_strides=strides)
+        lat = poses.build_lattice(model, X0, g, (2.0, 2.0), (), prm, goal=(Xg, g))
+        assert not _pose_graph_connects(lat.pose_set())
+        n0 = len(lat.rows)
+        start_side = [i for i in range(n0) if i != lat.goal_id]
+        assert (poses.walk_lattice(lat, start_side, [lat.goal_id]) > 0) == joins
+        walked = lat.pose_set()
+        assert _pose_graph_connects(walked) == joins
     pivots = walked.links[walked.link_primitive == "pivot"]
-    assert len(pivots)
-    for a, b in pivots:
+    for a, b in pivots[np.any(pivots >= n0, axis=1)]:
         assert walked.status[a] == "ok" and walked.status[b] == "ok"
         rel = connect.planar_motion(walked.X_WO[a], walked.X_WO[b])
-        assert rel is not None and abs(rel[2]) <= prm.goal_max_angle + 1e-9
+        assert rel is not None and abs(rel[2]) <= max(prm.theta_t, prm.goal_max_angle) + 1e-9
 
 
 def test_a_goal_on_an_uneven_base_face_joins_the_lattice():
@@ -564,3 +571,16 @@ def test_extend_lattice_with_no_corner_held_pivots_nowhere_from_that_pose():
     poses.extend_lattice(lat, [0], [lat.goal_id], {0: np.zeros(0, np.int64)}, budget=30)
     ps = lat.pose_set()
     assert not np.any((ps.links[:, 0] == 0) & (ps.link_primitive == "pivot"))
+
+
+def test_a_box_tumbles_from_its_base_onto_a_side_and_the_route_to_its_top_takes_two():
+    """The box's faces: one tumble from the base onto a side, two onto the top (no edge joins them)."""
+    model = box_model()
+    _, g = upright(model)
+    down = se3.rotate_vectors(model.X_TO[g], model.normals) @ np.array([0.0, 0.0, -1.0])  # at rest on g
+    top = int(np.argmin(down))  # the face whose outward normal points up at rest
+    side = int(np.flatnonzero(np.abs(down) < 1e-9)[0])
+    assert poses.face_route(model, g, g, 0.05) == [g]
+    assert poses.face_route(model, g, side, 0.05) == [g, side]
+    assert len(poses.face_route(model, g, top, 0.05)) == 3
+    assert poses.face_route(model, g, side, 10.0) == []  # no support edge long enough: no tumble at all
