@@ -50,9 +50,11 @@ Exp. 1 the left arm's joints 5 and 7 ran 1.1 rad from the plan and its elbow (li
 (0.27-0.38 rad on the same pivot with continuous plan joints, against 0.07 rad with the 3-D task).
 Joint torques are clipped to the URDF efforts.
 
-Where the plan has both balls in contact, ``x*`` is pushed ``w_l w_r c * squeeze`` inside the
-surface along the contact normal (``kp * squeeze`` = 25 N, the notes' 20-30 N; ``c`` how far the two
-normals oppose, :func:`_squeeze_weights`: a ball alone must not push) and ``F_plan`` is fed forward; ``w``
+Where the plan has both balls in contact, ``x*`` is pushed ``w_l w_r c * squeeze`` toward the other
+ball (``kp * squeeze`` = 25 N, the notes' 20-30 N; ``c`` how far the two normals oppose,
+:func:`_squeeze_weights`: a ball alone must not push; along the line between the balls, the grasp's
+internal force, :func:`_squeeze_lines`, not along each contact normal, which on a curved object's
+contact pair lifted the duck off its pivot vertex) and ``F_plan`` is fed forward; ``w``
 rises from 0 to 1 over ``Params.ramp_time`` after the flag turns on and falls back before it turns
 off (minimum-jerk), so contacts are made and broken smoothly. The contact normal is the direction from
 the planned ball centre to the nearest point of the mesh in the planned object pose. A ball that
@@ -789,6 +791,17 @@ def _squeeze_weights(weight: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.stack([w, w], axis=1)
 
 
+def _squeeze_lines(p_ball: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """``(T, 2, 3)`` unit direction of each ball's squeeze: toward the other ball's centre
+    ``p_ball (T, 2, 3)`` (m, W), the two-contact grasp's internal force (the grasp map's null space:
+    equal and opposite along the line joining the contacts, so no net force or moment on the object),
+    where the two inward ``normals`` (T, 2, 3) are not collinear (a curved surface's contact pair); the
+    normal itself where the balls coincide."""
+    d = p_ball[:, ::-1] - p_ball
+    n = np.linalg.norm(d, axis=2, keepdims=True)
+    return np.where(n > 1e-9, d / np.maximum(n, 1e-12), normals)
+
+
 def _hold_weights(weight: np.ndarray, kind: np.ndarray, f_ball: np.ndarray) -> np.ndarray:
     """``(T, 2)`` weights of a ball holding the object alone between primitives (``kind`` transit or
     hold, the other ball off, a planned force ``f_ball (T, 2, 3)`` on it): its target is then moved
@@ -1119,7 +1132,8 @@ def _squeeze_depth(f_ball: np.ndarray, f_bound: float, params: Params) -> np.nda
 def _make_targets(plan: Plan, R_plan: np.ndarray, normals: np.ndarray, params: Params, f_bound: float) -> _Targets:
     weight = _contact_weights(plan.t, plan.contact, params.ramp_time)
     depth = _squeeze_depth(plan.f_ball, f_bound, params)
-    x_row = plan.p_ball + (_squeeze_weights(weight, normals) * depth)[..., None] * normals
+    squeeze = (_squeeze_weights(weight, normals) * depth)[..., None]
+    x_row = plan.p_ball + squeeze * _squeeze_lines(plan.p_ball, normals)
     f_row = weight[..., None] * plan.f_ball
     if params.ball_orientation == "object":
         R_row = _rotation_targets(plan.t, plan.X_WO, R_plan, plan.contact, params.unwind_time)

@@ -225,6 +225,20 @@ def test_squeeze_acts_only_while_both_balls_hold_on_opposed_normals():
     assert np.all(execute._squeeze_weights(w, n) == 0.0)
 
 
+def test_the_squeeze_runs_along_the_line_between_the_balls_so_it_adds_no_net_force():
+    """Two balls on a curved object, their inward normals tilted up 30 deg toward each other: pushed
+    along their normals they would lift it (a net upward force); along the line between the balls the
+    two squeezes cancel and exert no moment about either ball."""
+    p = np.array([[[0.0, -0.1, 0.2], [0.0, 0.1, 0.25]]])
+    up = np.radians(30.0)
+    n = np.array([[[0.0, np.cos(up), np.sin(up)], [0.0, -np.cos(up), np.sin(up)]]])
+    assert np.sum(n, axis=1)[0, 2] > 0.9  # the normals' squeeze would lift the object
+    d = execute._squeeze_lines(p, n)
+    assert np.allclose(np.sum(d, axis=1), 0.0) and np.allclose(np.linalg.norm(d, axis=2), 1.0)
+    assert np.allclose(np.cross(d[0, 0], p[0, 1] - p[0, 0]), 0.0)  # on the line: no moment
+    assert np.allclose(execute._squeeze_lines(np.repeat(p[:, :1], 2, axis=1), n), n)  # coincident: the normals
+
+
 def test_a_ball_follows_the_object_only_while_it_holds_it_alone_between_primitives():
     t = np.arange(0.0, 3.0, 0.05)
     contact = np.stack([t < 2.0, (t > 0.5) & (t < 2.5)], axis=1)  # left 0-2 s, right 0.5-2.5 s
