@@ -54,7 +54,10 @@ Grasp-aware reach (``Params.reach_rounds``, our addition): the lattice is laid o
 is known. When the start does not reach the goal along links whose grasps pass the graph stage's
 checks (LazySP over the lattice, :func:`lazy_reach`), it grows on from the poses the start does reach,
 pivoting them only about the corners their grasps hold, and the new poses' grasps are refined; the
-artifacts hold every round's poses and grasps, and ``sample.json`` the rounds grown.
+artifacts hold every round's poses and grasps, and ``sample.json`` the rounds grown. When the rounds
+leave the goal unreached, pivot walks join the two sides as a last resort (``poses.walk_lattice``,
+``sample.json``'s ``walk_joins``): only then, since a walk's long pivot chains replace routes that
+plan without them.
 """
 
 from __future__ import annotations
