@@ -246,6 +246,12 @@ def pivot_corners(model: ObjectModel, cluster: float, tilt: float | None = None)
 #: corner: a flat-bottomed mesh's rim vertices lie within a fraction of a millimetre of its plane,
 #: which the contact's compliance takes; a deeper one would carry the object instead of the corner.
 TILT_TOLERANCE = 1e-3
+#: The height (m) the tilt direction keeps the other hull vertices above the table where some
+#: direction can: a vertex that touches (or nearly) drags on the table while the object turns about
+#: the corner, a friction torque the pivot's model leaves out. Vertices closer than
+#: ``TILT_CORNER_RADIUS`` (m, horizontally) to the corner are the corner itself (a rounded tip).
+TILT_CLEARANCE = 1e-3
+TILT_CORNER_RADIUS = 5e-3
 _TILT_ANGLES = np.radians(np.arange(0.0, 360.0, 0.5))
 _NO_TILT = np.zeros(0)  # sentinel: no direction stands the object on the corner
 
@@ -255,10 +261,11 @@ def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float) ->
     table) tilts by ``tilt`` (rad) onto its hull vertex ``v``: ``mpc.pivot_reference``'s ``tilt_dir``
     (§5.2.1, Fig. 12; its tilt axis is ``d x z``). None when the default, the direction from the
     vertex to the CoM, works: at the full tilt no hull vertex sinks below the table by more than
-    ``TILT_TOLERANCE``, so the object stands on ``v`` and turns about it. Otherwise the direction
-    nearest to the CoM's (less than 90 deg off, 0.5 deg steps) that does: next to a wide corner or
-    a rounded rim the CoM's would roll the object onto a neighbour, which physics then turns about
-    instead. Raises ``InputError`` when no direction does (``pivot_corners`` with ``tilt`` leaves
+    ``TILT_TOLERANCE`` and those apart from the corner (``TILT_CORNER_RADIUS``) stay
+    ``TILT_CLEARANCE`` above it, or as high as the best direction keeps them, so the object stands on
+    ``v`` alone and turns about it. Otherwise the direction nearest to the CoM's (less than 90 deg
+    off, 0.5 deg steps) that does: next to a wide corner or a rounded rim the CoM's would roll the
+    object onto a neighbour, or let it drag one, which physics then turns about instead. Raises ``InputError`` when no direction does (``pivot_corners`` with ``tilt`` leaves
     such corners out). Yaw and shift do not change it: solved once per (vertex, table normal in O)."""
     d_O = _tilt_dir_O(model, v, X_WO, tilt)
     if d_O is _NO_TILT:
@@ -285,15 +292,23 @@ def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float):
     dc = (model.com - model.vertices[v]) @ E.T
     dc = dc / np.linalg.norm(dc) if np.linalg.norm(dc) > 1e-9 else np.array([1.0, 0.0])
 
-    def clears(D: np.ndarray) -> np.ndarray:  # (A, 2) directions -> (A,) bool
-        return np.all(z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T) >= -TILT_TOLERANCE, axis=0)
+    far = np.linalg.norm(s, axis=1) >= TILT_CORNER_RADIUS
 
-    if clears(dc[None])[0]:
+    def lowest(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (A, 2) -> every vertex's, the far ones'
+        h = z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T)
+        return h.min(axis=0), np.where(far[:, None], h, np.inf).min(axis=0)
+
+    D = np.stack([np.cos(_TILT_ANGLES), np.sin(_TILT_ANGLES)], axis=1)
+    cosa = D @ dc
+    low, low_far = lowest(D)
+    ok = (low >= -TILT_TOLERANCE) & (cosa > 0.0)
+    # The clearance to seek: TILT_CLEARANCE, or the best one any stable direction gives when less.
+    want = min(TILT_CLEARANCE, float(np.max(np.where(ok, low_far, -np.inf)))) if ok.any() else np.inf
+    low_c, low_far_c = lowest(dc[None])
+    if low_c[0] >= -TILT_TOLERANCE and low_far_c[0] >= want - 1e-9:  # a nanometre: the grid's rounding
         out = None
     else:
-        D = np.stack([np.cos(_TILT_ANGLES), np.sin(_TILT_ANGLES)], axis=1)
-        cosa = D @ dc
-        ok = clears(D) & (cosa > 0.0)
+        ok &= low_far >= want
         out = D[np.argmax(np.where(ok, cosa, -2.0))] @ E if ok.any() else _NO_TILT
     model.tilt_dirs[key] = out
     return out

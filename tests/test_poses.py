@@ -480,16 +480,41 @@ def test_a_wide_corner_tilts_off_the_coms_direction_so_that_no_neighbour_sinks()
     T = se3.transform_about_line(V[v], np.cross(d, [0, 0, 1.0]), tilt)
     z = se3.transform_points(T, V)[:, 2] - V[v, 2]
     assert z.min() >= -poses.TILT_TOLERANCE - 1e-9
-    # The nearest such direction to the CoM's: the limit is q, (q - v) . d sin(tilt) = -tolerance; the
-    # answer lies within the 0.5 deg search step of it.
+    far = np.linalg.norm((V - V[v])[:, :2], axis=1) >= poses.TILT_CORNER_RADIUS
+    assert z[far].min() >= poses.TILT_CLEARANCE - 1e-9
+    # The nearest direction to the CoM's that keeps the neighbours the clearance above the table: the
+    # limit is q, (q - v) . d sin(tilt) = clearance; the answer lies within the 0.5 deg search step.
     dc = (se3.transform_points(X, model.com) - V[v])[:2]
     dc /= np.linalg.norm(dc)
     qv = (V[q] - V[v])[:2]
     psi_q, psi_c = np.arctan2(qv[1], qv[0]), np.arctan2(dc[1], dc[0])
-    half = np.arccos(-poses.TILT_TOLERANCE / np.sin(tilt) / np.linalg.norm(qv))
+    half = np.arccos(poses.TILT_CLEARANCE / np.sin(tilt) / np.linalg.norm(qv))
     best = min(abs((psi_q + s * half - psi_c + np.pi) % (2 * np.pi) - np.pi) for s in (-1, 1))
     got = np.arccos(np.clip(d[:2] @ dc, -1, 1))
     assert best - 1e-9 <= got <= best + np.radians(0.5) + 1e-9
+
+
+def test_a_nearly_straight_rim_tilts_where_its_neighbours_stay_highest():
+    # Base corner v = (0, 0) on a nearly straight rim, neighbours (+-0.3, 0.005): tilting 8 deg
+    # straight across the rim (+y) keeps both 0.7 mm up, the most any direction does (under
+    # TILT_CLEARANCE). The top leans 1 cm to +x, so the CoM's direction would keep the left neighbour
+    # above -TILT_TOLERANCE but below that: the object would drag it while turning. The tilt goes +y.
+    model = _prism_model([(0, 0), (0.3, 0.005), (0.31, 0.4), (-0.29, 0.4), (-0.3, 0.005)])
+    g = int(np.argmax(model.normals @ np.array([0, 0, -1.0])))
+    X, v, left = model.X_TO[g], _vertex_at(model, (0, 0, 0)), _vertex_at(model, (-0.3, 0.005, 0))
+    V = se3.transform_points(X, model.vertices)
+    tilt = np.radians(8)
+    dc = (se3.transform_points(X, model.com) - V[v])[:2]
+    dc /= np.linalg.norm(dc)
+    h_com = (V[left] - V[v])[:2] @ dc * np.sin(tilt)
+    assert -poses.TILT_TOLERANCE < h_com < 0.005 * np.sin(tilt) - 1e-4   # the case: the CoM's drags
+    d = poses.tilt_direction(model, X, v, tilt)
+    across = X[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    assert d is not None and np.degrees(np.arccos(np.clip(d @ across, -1, 1))) <= 0.5 + 1e-9
+    # Symmetric about the CoM, the CoM's direction is already the best one: the default stays.
+    sym = _prism_model([(0, 0), (0.3, 0.005), (0.3, 0.4), (-0.3, 0.4), (-0.3, 0.005)])
+    gs = int(np.argmax(sym.normals @ np.array([0, 0, -1.0])))
+    assert poses.tilt_direction(sym, sym.X_TO[gs], _vertex_at(sym, (0, 0, 0)), tilt) is None
 
 
 def test_a_corner_with_a_rounded_rim_around_it_is_no_pivot_corner():
