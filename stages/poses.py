@@ -265,8 +265,9 @@ def tilt_direction(model: ObjectModel, X_WO: np.ndarray, v: int, tilt: float) ->
     ``TILT_CLEARANCE`` above it, or as high as the best direction keeps them, so the object stands on
     ``v`` alone and turns about it. Otherwise the direction nearest to the CoM's (less than 90 deg
     off, 0.5 deg steps) that does: next to a wide corner or a rounded rim the CoM's would roll the
-    object onto a neighbour, or let it drag one, which physics then turns about instead. Raises ``InputError`` when no direction does (``pivot_corners`` with ``tilt`` leaves
-    such corners out). Yaw and shift do not change it: solved once per (vertex, table normal in O)."""
+    object onto a neighbour, or let it drag one, which physics then turns about instead. Raises
+    ``InputError`` when no direction does (``pivot_corners`` with ``tilt`` leaves such corners out).
+    Yaw and shift do not change it: solved once per (vertex, table normal in O)."""
     d_O = _tilt_dir_O(model, v, X_WO, tilt)
     if d_O is _NO_TILT:
         raise InputError(f"no tilt by {np.degrees(tilt):.1f} deg stands the object on its vertex {v}")
