@@ -303,7 +303,7 @@ def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float):
     cosa = D @ dc
     low, low_far = lowest(D)
     ok = (low >= -TILT_TOLERANCE) & (cosa > 0.0)
-    # The clearance to seek: TILT_CLEARANCE, or the best one any stable direction gives when less.
+    # The clearance to seek: TILT_CLEARANCE, or the best one an allowed direction gives when less.
     want = min(TILT_CLEARANCE, float(np.max(np.where(ok, low_far, -np.inf)))) if ok.any() else np.inf
     low_c, low_far_c = lowest(dc[None])
     if low_c[0] >= -TILT_TOLERANCE and low_far_c[0] >= want - 1e-9:  # a nanometre: the grid's rounding
