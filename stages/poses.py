@@ -814,16 +814,22 @@ def _successors(model, corners, X, g, half, params):
         for sign in (1.0, -1.0):
             T = se3.transform_about_line(p, np.array([0.0, 0.0, 1.0]), sign * params.theta_t)
             out.append((T @ X, g, "pivot", int(v), (-1, -1), sign * params.theta_t))
-    adjacent = np.flatnonzero((model.edge_faces == g).any(axis=1))
-    for e in adjacent:
+    for e in _roll_edges(model, g, params.min_tumble_edge):
         a, b = model.edges[e]
-        pa, pb = se3.transform_points(X, model.vertices[[a, b]])
-        if np.linalg.norm(pb - pa) < params.min_tumble_edge or np.any(np.abs(np.stack([pa, pb])[:, :2]) > half):
+        if np.any(np.abs(se3.transform_points(X, model.vertices[[a, b]])[:, :2]) > half):
             continue
         done = _tumble(model, X, g, e)
         if done is not None:
             out.append((done[0], done[1], "tumble", -1, (int(a), int(b)), done[2]))
     return out
+
+
+def _roll_edges(model: ObjectModel, g: int, min_edge: float) -> np.ndarray:
+    """Ids of the hull edges of face ``g`` at least ``min_edge`` long (m, ``Params.min_tumble_edge``):
+    the support edges a tumble from ``g`` may roll over (§5.1, the module docstring)."""
+    e = np.flatnonzero((model.edge_faces == g).any(axis=1))
+    v = model.vertices[model.edges[e]]
+    return e[np.linalg.norm(v[:, 1] - v[:, 0], axis=1) >= min_edge]
 
 
 def face_route(model: ObjectModel, start: int, goal: int, min_edge: float) -> list[int]:
@@ -838,9 +844,8 @@ def face_route(model: ObjectModel, start: int, goal: int, min_edge: float) -> li
     G = nx.DiGraph()
     G.add_nodes_from([int(start), int(goal)])
     for g in np.flatnonzero(model.stable).tolist():
-        for e in np.flatnonzero((model.edge_faces == g).any(axis=1)).tolist():
-            a, b = model.vertices[model.edges[e]]
-            if np.linalg.norm(b - a) >= min_edge and (done := _tumble(model, model.X_TO[g], g, e)) is not None:
+        for e in _roll_edges(model, g, min_edge).tolist():
+            if (done := _tumble(model, model.X_TO[g], g, e)) is not None:
                 G.add_edge(g, done[1])
     try:
         return [int(g) for g in nx.shortest_path(G, int(start), int(goal))]
