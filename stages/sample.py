@@ -481,16 +481,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     first = np.argmax(holds, axis=1)
     piv_c = np.zeros((C, kmax), bool)
     r2, c2 = rows[res.stable], cols[res.stable]
-    # The start of the tilt first: the object already on that corner alone with its CoM at its full
-    # offset, the hardest instant of the pivot (the tilt then brings the CoM towards the corner).
-    start = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, 0.0, prm_pivot, evaluate)
-    r2, c2 = r2[start], c2[start]
-    dirs = np.zeros((len(r2), 3))  # mpc.pivot_reference's tilt direction where it is not the CoM's
-    for i, (ri, vi) in enumerate(zip(r2.tolist(), cid[ukey[r2, 0], c2].tolist(), strict=True)):
-        d = poses.tilt_direction(model, X_c[ri], vi, scene.planner.tilt)
-        dirs[i] = 0.0 if d is None else d
-    piv_c[r2, c2] = _tilted_holds(mass, com_c[r2], V_c[r2, c2], eef_p[r2], eef_n[r2], L, scene.planner.tilt,
-                                  prm_pivot, evaluate, dirs)
+    classes = _Classes(X_c, com_c, V_c, cid[ukey[:, 0]], eef_p, eef_n)
+    piv_c[r2, c2] = _pivot_holds(classes, r2, c2, mass, L, scene.planner.tilt, model, prm_pivot, evaluate)
     pivots = on & piv_c[cls]
     out["pivot_vertices"] = [ids[i][pivots[i]] for i in range(N)]
     # Margins cost twelve LPs each: measure them on one pivot corner per SP grasp, the first that holds
@@ -525,6 +517,38 @@ def _usp_stability(out, us, model, tables, pose_id, g, X, eef_p, eef_n, half, lp
     for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
         _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
                    evaluate)
+
+
+class _Classes(NamedTuple):
+    """The (placement, pair) classes of :func:`_stability`, each in its placement's resting pose (W, m):
+    ``X (C, 4, 4)``, ``com (C, 3)``, support corners ``V (C, kmax, 3)`` and their hull vertex ids
+    ``vid (C, kmax)`` (-1: padding), the balls' contact points ``eef_p`` and inward normals
+    ``eef_n (C, 2, 3)``."""
+
+    X: np.ndarray
+    com: np.ndarray
+    V: np.ndarray
+    vid: np.ndarray
+    eef_p: np.ndarray
+    eef_n: np.ndarray
+
+
+def _pivot_holds(cl: _Classes, r: np.ndarray, c: np.ndarray, mass: float, L: float, tilt: float, model,
+                 prm: stability.Params, evaluate) -> np.ndarray:
+    """``(n,)`` whether the balls of class ``r`` hold the object on its corner ``c`` (column of
+    ``cl.V``) through a pivot (eq. 1-4, §5.2.1): at the start of the tilt first, the object already on
+    that corner alone with its CoM at its full offset (the hardest instant: the tilt then brings the
+    CoM towards the corner), then at the full ``tilt`` (rad) along ``mpc.pivot_reference``'s tilt
+    direction (``poses.tilt_direction``)."""
+    ok = _tilted_holds(mass, cl.com[r], cl.V[r, c], cl.eef_p[r], cl.eef_n[r], L, 0.0, prm, evaluate)
+    i = np.flatnonzero(ok)
+    dirs = np.zeros((len(i), 3))  # the tilt direction where it is not the CoM's
+    for k, (ri, vi) in enumerate(zip(r[i].tolist(), cl.vid[r[i], c[i]].tolist(), strict=True)):
+        d = poses.tilt_direction(model, cl.X[ri], vi, tilt)
+        dirs[k] = 0.0 if d is None else d
+    ri, ci = r[i], c[i]
+    ok[i] = _tilted_holds(mass, cl.com[ri], cl.V[ri, ci], cl.eef_p[ri], cl.eef_n[ri], L, tilt, prm, evaluate, dirs)
+    return ok
 
 
 def _tilted_holds(mass, com, p0, eef_p, eef_n, L: float, tilt: float, prm: stability.Params, evaluate,
