@@ -427,15 +427,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     def evaluate(*args, **kwargs):  # the candidates in slices, one per thread
         return stability.evaluate_threaded(*args, **kwargs, threads=params.threads, min_rows=256)
 
-    prm = stability.Params(mu_eef=scene.object.friction, mu_table=scene.table.friction,
-                           f_max=scene.robot.max_eef_force)
-    prm_hold = stability.Params(mu_eef=params.hold_eef_friction * scene.object.friction,
-                                mu_table=params.hold_friction_safety * scene.table.friction,
-                                f_max=scene.robot.max_eef_force)
-    mu_pivot = params.pivot_friction_safety * scene.object.friction
-    prm_pivot = stability.Params(mu_eef=mu_pivot, mu_table=params.pivot_friction_safety * scene.table.friction,
-                                 f_max=stability.normal_bound(params.pivot_force_safety * scene.robot.max_eef_force,
-                                                              mu_pivot))
+    prm, prm_hold, prm_pivot = _lp_params(scene, params)
     corners = poses.pivot_corners(model, params.corner_cluster, scene.planner.tilt)
     half = np.asarray(scene.table.size) / 2
     out = {"hold_left": np.zeros(N, bool), "hold_right": np.zeros(N, bool), "pivot_vertices": [None] * N,
@@ -517,6 +509,19 @@ def _usp_stability(out, us, model, tables, pose_id, g, X, eef_p, eef_n, half, lp
     for kmax in np.unique(size):  # one batch per polygon size: no LP carries another's padding
         _usp_holds(out, us[size == kmax], kmax, polys, pose_id, mass, com, eef_p, eef_n, X, L, prm, prm_hold,
                    evaluate)
+
+
+def _lp_params(scene, params: Params) -> tuple[stability.Params, stability.Params, stability.Params]:
+    """The stability LPs' friction and force bounds (module docstring, step 6): holding with both balls
+    (the scene's own), a one-ball USP hold (``hold_eef_friction``, ``hold_friction_safety``) and a pivot
+    (``pivot_friction_safety``, ``pivot_force_safety`` as a bound on the whole ball force)."""
+    mu, f_max = scene.object.friction, scene.robot.max_eef_force
+    mu_pivot = params.pivot_friction_safety * mu
+    return (stability.Params(mu_eef=mu, mu_table=scene.table.friction, f_max=f_max),
+            stability.Params(mu_eef=params.hold_eef_friction * mu,
+                             mu_table=params.hold_friction_safety * scene.table.friction, f_max=f_max),
+            stability.Params(mu_eef=mu_pivot, mu_table=params.pivot_friction_safety * scene.table.friction,
+                             f_max=stability.normal_bound(params.pivot_force_safety * f_max, mu_pivot)))
 
 
 class _Classes(NamedTuple):
