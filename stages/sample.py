@@ -195,6 +195,81 @@ def clearance_of(params: dict) -> tuple[float, float]:
     return float(params.get("arm_clearance", 0.0)), float(params.get("stick_clearance", 0.0))
 
 
+def _prefilter(scene, robot, collide, params: Params, X_kept: np.ndarray, points: tuple, normals: tuple,
+               balls: tuple) -> np.ndarray:
+    """The cheap refusals of grasp candidates before any IK (module docstring, steps 1-3), one reason
+    code per candidate ("" where none): a ball under the object but over the table, a ball in the
+    table, a contact normal facing away from its arm, and the poses ``X_kept`` where the object
+    overlaps a part of an arm no posture moves. Candidates are pose-major (every pair of each pose of
+    ``X_kept``); ``points``, ``normals``, ``balls`` are the (left, right) contact points, outward
+    normals and ball centres (W, m)."""
+    (p_l, p_r), (n_l, n_r), (ball_l, ball_r) = points, normals, balls
+    r = scene.robot.ball_radius
+    reason = np.full(len(p_l), "", dtype=object)
+
+    def refuse(mask, why):
+        new = mask & (reason == "")
+        reason[new] = why
+
+    # A ball beyond the table's edge (in plan view) is under nothing but the object: in USP it may
+    # hold the overhang from below (Fig. 14's catcher on its grasp contact).
+    half = np.asarray(scene.table.size) / 2
+    clear_l, clear_r = (np.max(np.abs(b[:, :2]) - half, axis=1) >= r + params.table_clearance
+                        for b in (ball_l, ball_r))
+    refuse(((n_l[:, 2] < params.under_nz) & ~clear_l) | ((n_r[:, 2] < params.under_nz) & ~clear_r),
+           "eef_under_object")
+    refuse(((ball_l[:, 2] < r + params.table_clearance) & ~clear_l) |
+           ((ball_r[:, 2] < r + params.table_clearance) & ~clear_r), "env_collision:ball/table")
+    for arm, p, n in (("left", p_l, n_l), ("right", p_r, n_r)):
+        s = robot.arm(arm).reach_centre
+        to_s = s[:2] - p[:, :2]
+        cos = np.einsum("ij,ij->i", n[:, :2], to_s) / np.maximum(
+            np.linalg.norm(n[:, :2], axis=1) * np.linalg.norm(to_s, axis=1), 1e-12)
+        flat = np.linalg.norm(n[:, :2], axis=1) < 0.3  # a top face is reached from above
+        refuse(~flat & (cos < np.cos(params.away_angle)), "normal_away")
+    # Poses where the object overlaps a part of an arm that no posture moves out of it: every
+    # candidate of the pose collides, whatever its IK (one check per pose).
+    blocked, why = collide.object_blocks_arm(X_kept)
+    K = len(p_l) // max(len(X_kept), 1)
+    hit = np.repeat(blocked.any(axis=1), K) & (reason == "")
+    reason[hit] = np.repeat(why, K)[hit]
+    return reason
+
+
+def _collide_with_retries(robot, collide, params: Params, rng, X: np.ndarray, balls: tuple, qs: tuple,
+                          cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Collisions of the arms with the table, obstacles, the object and each other for candidates
+    ``cand`` (poses ``X``, ball centres ``balls`` = (left, right) (n, 3) W, joints ``qs`` = (left,
+    right), updated in place); returns the rows that still collide and their reasons. The IK knows
+    nothing of obstacles, so a colliding candidate gets more IK solutions, from other comfortable
+    library postures near its target (collision-aware IK by retry, ``collision_retries`` times), before
+    it is refused. Only the arms that the colliding pair involves are solved again (the other keeps its
+    solution), and only the rows that got a new solution are checked again: the check of a row depends
+    on its joints."""
+    q_l, q_r = qs
+    touching = np.ones((len(cand), 2), bool)
+    ok, why, blame = collide(q_l[cand], q_r[cand], X[cand], touching, blame=True)
+    failed, why, blame = cand[~ok], why[~ok].astype(object), blame[~ok]
+    for attempt in range(params.collision_retries):
+        if len(failed) == 0:
+            break
+        moved = np.zeros(len(failed), bool)
+        for s, (arm, ball, q) in enumerate(zip(("left", "right"), balls, qs, strict=True)):
+            a = robot.arm(arm)
+            redo = np.flatnonzero(blame[:, s])
+            seed = robot.library_seeds(arm, ball[failed[redo]], 1 + params.ik_restarts + attempt)
+            seed = np.clip(seed + rng.normal(0.0, params.retry_jitter, seed.shape), a.lower, a.upper)
+            res = robot.ik(arm, ball[failed[redo]], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
+            q[failed[redo[res.ok]]] = res.q[res.ok]
+            moved[redo[res.ok]] = True
+        m = np.flatnonzero(moved)
+        ok, why[m], blame[m] = collide(q_l[failed[m]], q_r[failed[m]], X[failed[m]], touching[:len(m)], blame=True)
+        keep = np.ones(len(failed), bool)
+        keep[m[ok]] = False
+        failed, why, blame = failed[keep], why[keep], blame[keep]
+    return failed, why
+
+
 def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: poses.PoseSet, robot, collide,
                   params: Params, rng: np.random.Generator,
                   pose_ids: np.ndarray | None = None) -> tuple[dict, dict, dict]:
@@ -224,33 +299,7 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     p_l, p_r = se3.transform_points(X, p_O[c_left]), se3.transform_points(X, p_O[c_right])
     n_l, n_r = se3.rotate_vectors(X, n_O[c_left]), se3.rotate_vectors(X, n_O[c_right])
     ball_l, ball_r = p_l + r * n_l, p_r + r * n_r
-    reason = np.full(len(X), "", dtype=object)
-
-    def refuse(mask, why):
-        new = mask & (reason == "")
-        reason[new] = why
-
-    # A ball beyond the table's edge (in plan view) is under nothing but the object: in USP it may
-    # hold the overhang from below (Fig. 14's catcher on its grasp contact).
-    half = np.asarray(scene.table.size) / 2
-    clear_l, clear_r = (np.max(np.abs(b[:, :2]) - half, axis=1) >= r + params.table_clearance
-                        for b in (ball_l, ball_r))
-    refuse(((n_l[:, 2] < params.under_nz) & ~clear_l) | ((n_r[:, 2] < params.under_nz) & ~clear_r),
-           "eef_under_object")
-    refuse(((ball_l[:, 2] < r + params.table_clearance) & ~clear_l) |
-           ((ball_r[:, 2] < r + params.table_clearance) & ~clear_r), "env_collision:ball/table")
-    for arm, p, n in (("left", p_l, n_l), ("right", p_r, n_r)):
-        s = robot.arm(arm).reach_centre
-        to_s = s[:2] - p[:, :2]
-        cos = np.einsum("ij,ij->i", n[:, :2], to_s) / np.maximum(
-            np.linalg.norm(n[:, :2], axis=1) * np.linalg.norm(to_s, axis=1), 1e-12)
-        flat = np.linalg.norm(n[:, :2], axis=1) < 0.3  # a top face is reached from above
-        refuse(~flat & (cos < np.cos(params.away_angle)), "normal_away")
-    # Poses where the object overlaps a part of an arm that no posture moves out of it: every
-    # candidate of the pose collides, whatever its IK (one check per pose).
-    blocked, why = collide.object_blocks_arm(ps.X_WO[kept])
-    hit = np.repeat(blocked.any(axis=1), K) & (reason == "")
-    reason[hit] = np.repeat(why, K)[hit]
+    reason = _prefilter(scene, robot, collide, params, ps.X_WO[kept], (p_l, p_r), (n_l, n_r), (ball_l, ball_r))
     t1 = time.perf_counter()
 
     # IK for both arms on the candidates still alive.
@@ -265,32 +314,8 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
         live = np.flatnonzero(reason == "")
     t2 = time.perf_counter()
 
-    # Collisions of the arms with the table, obstacles, the object and each other. The IK knows
-    # nothing of obstacles, so a colliding candidate gets more IK solutions, from other comfortable
-    # library postures near its target (collision-aware IK by retry), before it is refused. Only the
-    # arms that the colliding pair involves are solved again (the other keeps its solution), and only
-    # the rows that got a new solution are checked again: the check of a row depends on its joints.
-    cand = np.flatnonzero(reason == "")
-    touching = np.ones((len(cand), 2), bool)
-    ok, why, blame = collide(q_l[cand], q_r[cand], X[cand], touching, blame=True)
-    failed, why, blame = cand[~ok], why[~ok].astype(object), blame[~ok]
-    for attempt in range(params.collision_retries):
-        if len(failed) == 0:
-            break
-        moved = np.zeros(len(failed), bool)
-        for s, (arm, ball, q) in enumerate((("left", ball_l, q_l), ("right", ball_r, q_r))):
-            a = robot.arm(arm)
-            redo = np.flatnonzero(blame[:, s])
-            seed = robot.library_seeds(arm, ball[failed[redo]], 1 + params.ik_restarts + attempt)
-            seed = np.clip(seed + rng.normal(0.0, params.retry_jitter, seed.shape), a.lower, a.upper)
-            res = robot.ik(arm, ball[failed[redo]], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
-            q[failed[redo[res.ok]]] = res.q[res.ok]
-            moved[redo[res.ok]] = True
-        m = np.flatnonzero(moved)
-        ok, why[m], blame[m] = collide(q_l[failed[m]], q_r[failed[m]], X[failed[m]], touching[:len(m)], blame=True)
-        keep = np.ones(len(failed), bool)
-        keep[m[ok]] = False
-        failed, why, blame = failed[keep], why[keep], blame[keep]
+    failed, why = _collide_with_retries(robot, collide, params, rng, X, (ball_l, ball_r), (q_l, q_r),
+                                        np.flatnonzero(reason == ""))
     reason[failed] = why
     t3 = time.perf_counter()
 
@@ -303,27 +328,14 @@ def refine_grasps(scene: Scene, model: poses.ObjectModel, tables: dict, ps: pose
     t4 = time.perf_counter()
     timings.update(prefilter=t1 - t0, ik=t2 - t1, collision=t3 - t2, stability=t4 - t3, refine=t4 - t0)
 
-    good = live[~refuse_live]
-    g_sel = ~refuse_live
-    grasps = {
-        "grasp_id": np.arange(len(good)),
-        "pose_id": pose_idx[good].astype(np.int64),
-        "pair_id": pair_idx[good].astype(np.int64),
-        "contact_left": c_left[good].astype(np.int64),
-        "contact_right": c_right[good].astype(np.int64),
-        "margin": margins["margin"][g_sel],
-        "hold_left": margins["hold_left"][g_sel],
-        "hold_right": margins["hold_right"][g_sel],
-        "pivot_vertices": [v for v, s in zip(margins["pivot_vertices"], g_sel, strict=True) if s],
-        "q_left": list(q_l[good]),
-        "q_right": list(q_r[good]),
-    }
-    bad = np.flatnonzero(reason != "")
-    rejects = {
-        "pose_id": pose_idx[bad].astype(np.int64),
-        "pair_id": pair_idx[bad].astype(np.int64),
-        "reason": np.array([str(x) for x in reason[bad]], dtype=str),
-    }
+    good, g_sel, bad = live[~refuse_live], ~refuse_live, np.flatnonzero(reason != "")
+    ids = {"pose_id": pose_idx, "pair_id": pair_idx, "contact_left": c_left, "contact_right": c_right}
+    grasps = {"grasp_id": np.arange(len(good)), **{k: v[good].astype(np.int64) for k, v in ids.items()},
+              **{k: margins[k][g_sel] for k in ("margin", "hold_left", "hold_right")},
+              "pivot_vertices": [v for v, s in zip(margins["pivot_vertices"], g_sel, strict=True) if s],
+              "q_left": list(q_l[good]), "q_right": list(q_r[good])}
+    rejects = {"pose_id": pose_idx[bad].astype(np.int64), "pair_id": pair_idx[bad].astype(np.int64),
+               "reason": np.array([str(x) for x in reason[bad]], dtype=str)}
     return grasps, rejects, timings
 
 
