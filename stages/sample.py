@@ -372,21 +372,24 @@ def held_corners(grasps: dict) -> dict[int, np.ndarray]:
     return {p: np.unique(np.array(v, dtype=np.int64)) for p, v in by_pose.items()}
 
 
-def reach_graph(ps: poses.PoseSet, cands: dict) -> nx.Graph:
-    """The kept poses (nodes) and the links of ``cands`` (:func:`link_candidates`) between them (edges,
-    their link ids in ``links``)."""
-    G = nx.Graph()
+def reach_graph(ps: poses.PoseSet, cands: dict) -> nx.DiGraph:
+    """The kept poses (nodes) and the links of ``cands`` (:func:`link_candidates`) between them (arcs,
+    their link ids in ``links``): a pivot both ways (it turns back about the same corner), a tumble
+    only from its pose ``a`` to its landing ``b``, the way its pusher was found (rolling back over the
+    edge is another link, with its own pusher)."""
+    G = nx.DiGraph()
     G.add_nodes_from(np.flatnonzero(ps.status == "ok").tolist())
     for li in sorted(cands):
         a, b = ps.links[li].tolist()
-        if G.has_edge(a, b):
-            G.edges[a, b]["links"].append(li)
-        else:
-            G.add_edge(a, b, links=[li])
+        for u, v in ((a, b), (b, a)) if ps.link_primitive[li] == "pivot" else ((a, b),):
+            if G.has_edge(u, v):
+                G.edges[u, v]["links"].append(li)
+            else:
+                G.add_edge(u, v, links=[li])
     return G
 
 
-def lazy_reach(G: nx.Graph, goal: int, cands: dict, check, verified: dict, walks: int) -> bool:
+def lazy_reach(G: nx.DiGraph, goal: int, cands: dict, check, verified: dict, walks: int) -> bool:
     """LazySP (Dellin & Srinivasa) on the lattice: whether the goal is reached from pose 0 along links
     one of whose candidates passes ``check`` (candidates ``(n, 3)`` (grasp a, grasp b, link) -> status
     ``(n,)``, the graph stage's checks), checking only the shortest path's untested candidates each walk, up to
@@ -404,11 +407,15 @@ def lazy_reach(G: nx.Graph, goal: int, cands: dict, check, verified: dict, walks
                 verified[key] = st == "ok"
         cut = False
         for a, b in zip(path, path[1:], strict=False):
-            links = G.edges[a, b]["links"]
-            links[:] = [li for li in links if any(verified[(ga, gb, li)] for ga, gb in cands[li])]
-            if not links:
-                G.remove_edge(a, b)
-                cut = True
+            for u, v in ((a, b), (b, a)):  # a failed pivot is cut both ways
+                if not G.has_edge(u, v):
+                    continue
+                links = G.edges[u, v]["links"]
+                links[:] = [li for li in links if all((ga, gb, li) not in verified for ga, gb in cands[li])
+                            or any(verified.get((ga, gb, li)) for ga, gb in cands[li])]
+                if not links:
+                    G.remove_edge(u, v)
+                    cut |= (u, v) == (a, b)
         if not cut:
             return True
     return False
@@ -669,9 +676,9 @@ class _Reached(NamedTuple):
     rounds: int
 
 
-def _sides(G: nx.Graph, goal: int) -> tuple[list[int], list[int]]:
-    """The poses the start reaches in the reach graph ``G`` and those the goal reaches (the goal first)."""
-    return sorted(nx.node_connected_component(G, 0)), [goal, *sorted(nx.node_connected_component(G, goal) - {goal})]
+def _sides(G: nx.DiGraph, goal: int) -> tuple[list[int], list[int]]:
+    """The poses the start reaches in the reach graph ``G`` and those that reach the goal (the goal first)."""
+    return sorted(nx.descendants(G, 0) | {0}), [goal, *sorted(nx.ancestors(G, goal) - {goal})]
 
 
 def _goal_reached(scene, model, tables, arms: tuple, ps, grasps, reach: tuple, gp, verified: dict,

@@ -201,13 +201,24 @@ def test_scene_on_its_back_names_the_first_barrier_of_the_nearest_route_to_the_g
     assert tumbles.get("ik_unreachable", 0) + tumbles.get("joint_limit", 0) >= sum(tumbles.values()) / 2
 
 
-def test_a_route_whose_links_pass_from_grasps_the_start_does_not_reach_says_so(piano):
-    """The same task on 40 poses: the nearest route leaves the reached poses by a tumble whose edges
-    all pass, but from grasps of that pose the start reaches neither directly nor by a regrasp; no
-    edge of that link is refused, so no refusal may be named as its barrier."""
-    p = plan_scene(piano, "push40", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
-                                       "planner.max_poses": 40})
+def test_a_route_whose_links_pass_from_grasps_the_start_does_not_reach_says_so():
+    """Pose 1 has a second grasp (node 6) whose pivot onto pose 2 passes, but its regrasp from pose 1's
+    free node is refused, and the reached grasp's pivot is unstable: the nearest route leaves the
+    reached poses by a link whose passing edge starts from a grasp the start does not reach, which is
+    the cause; no refusal is named as that link's barrier."""
+    ctx = toy(pivot12="unstable")
+    n, e = ctx.nodes.columns, ctx.edges.columns
+    ctx.nodes = table(**{k: np.append(v, x) for (k, v), x in
+                         zip(n.items(), (6, "grasp", 1, 3, "SP"), strict=True)})
+    m = len(e["edge_id"]) + 2
+    ctx.edges = table(edge_id=np.arange(m), node_a=np.append(e["node_a"], [6, 6]),
+                      node_b=np.append(e["node_b"], [4, 2]),
+                      primitive=np.append(e["primitive"], ["regrasp", "pivot"]),
+                      status=np.append(e["status"], ["env_collision:left_link_6_b/object", "ok"]),
+                      directed=np.zeros(m, bool), weight=np.ones(m))
+    p = infeasible(ctx)
     d = p["diagnosis"]
-    assert d["route_link"]["class"] == "tumble:grasp_not_reached" and d["cause"] == "grasp_not_reached"
+    assert d["route_link"] == {"poses": [1, 2], "class": "pivot:grasp_not_reached"}
+    assert d["cause"] == "grasp_not_reached"
     assert p["reason"] == "no path in the graph: the start reaches no grasp that leads on"
     assert not any(k.endswith(":ok") for k in d["links_leading_on"])

@@ -68,3 +68,17 @@ def test_lazy_reach_gives_up_undecided_after_its_walks():
     fail_all = lambda c: np.full(len(c), "env_collision", dtype=object)  # noqa: E731
     assert not sample.lazy_reach(G, 2, cands, fail_all, {}, walks=1)
     assert G.number_of_edges() >= 2  # the second path was never walked
+
+
+def test_a_tumble_is_walked_only_the_way_its_pusher_rolls_the_object():
+    """Pose 1 tumbles onto pose 0: 0 does not reach 1 through that link (rolling back over the edge is
+    another link), while a pivot is walked both ways, and the sides follow the arcs."""
+    ps = _poses([(1, 0), (1, 2)], ["tumble", "pivot"], [-1, 3])
+    g = _grasps([(1, 1, 2, [3]), (2, 1, 2, [3])])
+    cands = sample.link_candidates(ps, g, tumbles=True)
+    assert cands == {0: [(-1, -1)], 1: [(0, 1)]}
+    G = sample.reach_graph(ps, cands)
+    assert G.has_edge(1, 0) and not G.has_edge(0, 1) and G.has_edge(1, 2) and G.has_edge(2, 1)
+    ok = lambda c: np.full(len(c), "ok", dtype=object)  # noqa: E731
+    assert not sample.lazy_reach(G, 2, cands, ok, {}, walks=5)
+    assert sample._sides(G, 2) == ([0], [2, 1])
