@@ -13,9 +13,10 @@ them in this order; ``causes`` lists every one that holds and ``cause`` is the f
    lattice lands on it (or the ``no_tumble`` ablation); ``pusher_out_of_reach`` / ``tumble_rejected``: tumble edges
    land on it but every one is refused, mostly for the pusher (``ik_unreachable``, ``joint_limit``,
    ``no_pusher_contact``) or for something else (the catch, a collision);
-4. ``goal_not_connected``: the goal pose is not in the start's component of the lattice (pivot and
-   tumble links, grasps ignored, the ablations applied): none of the pivots that join it to the
-   lattice (``stages.poses._insert_goal``) starts from a lattice pose;
+4. ``goal_not_connected``: no lattice route leads from the start to the goal pose (pivot links both
+   ways, tumble links from their pose onto their landing only, grasps ignored, the ablations
+   applied): none of the pivots that join it to the lattice (``stages.poses._insert_goal``) starts
+   from a pose the start's links lead to;
 5. the grasp graph is cut: each lattice link from a pose the start reaches to one it does not is
    classed (:func:`link_classes`): ``next_pose_has_no_grasp``; ``no_shared_grasp``, no edge joins
    the two poses (a pivot keeps its grasp, §5.1, and the two have none in common); or by the
@@ -101,17 +102,21 @@ def pose_facts(t: Tables, pose: int) -> dict:
             "candidates": grasps + int(np.count_nonzero(mine)), "rejected": count_reasons(t.rejects["reason"][mine])}
 
 
-def lattice(t: Tables, no_tumble: bool, no_usp: bool) -> nx.Graph:
-    """The kept poses joined by their pivot and tumble links (grasps ignored), with the ablations."""
+def lattice(t: Tables, no_tumble: bool, no_usp: bool) -> nx.DiGraph:
+    """The kept poses joined by their pivot links both ways and their tumble links from the pose onto
+    the landing only, as the search can take them (grasps ignored), with the ablations."""
     keep = np.ones(len(t.links), bool)
     if no_tumble:
         keep &= t.links["primitive"] != "tumble"
     if no_usp:
         usp = t.poses["support"] == "USP"
         keep &= ~(usp[t.links["pose_a"]] | usp[t.links["pose_b"]])
-    L = nx.Graph()
+    L = nx.DiGraph()
     L.add_nodes_from(np.flatnonzero(t.poses["status"] == "ok").tolist())
-    L.add_edges_from(zip(t.links["pose_a"][keep].tolist(), t.links["pose_b"][keep].tolist(), strict=True))
+    a, b = t.links["pose_a"], t.links["pose_b"]
+    L.add_edges_from(zip(a[keep].tolist(), b[keep].tolist(), strict=True))
+    back = keep & (t.links["primitive"] == "pivot")
+    L.add_edges_from(zip(b[back].tolist(), a[back].tolist(), strict=True))
     return L
 
 
@@ -162,7 +167,7 @@ def _onto_goal_face(t: Tables, status: np.ndarray, face: int, no_tumble: bool) -
             "face_route": [int(g) for g in t.face_route], "cause": why}, why
 
 
-def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
+def link_classes(t: Tables, L: nx.DiGraph, reached_poses: set, status: np.ndarray) -> dict[str, int]:
     """The lattice links from a reached pose to one not reached, by why the search cannot take them:
     the primitive and reason family of most of the refused edges between the two poses
     (``pivot:unstable``, ``tumble:ik_unreachable``, ...) when none passes; ``<primitive>:grasp_not_reached``
@@ -194,7 +199,7 @@ def link_classes(t: Tables, L: nx.Graph, reached_poses: set, status: np.ndarray)
     return dict(sorted(out.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
-def route_link(L: nx.Graph, reached_poses: set, goal_pose: int) -> tuple[int, int] | None:
+def route_link(L: nx.DiGraph, reached_poses: set, goal_pose: int) -> tuple[int, int] | None:
     """The first link the nearest lattice route from the reached poses to the goal takes out of them
     (multi-source breadth first over the lattice), or None when no route leaves them."""
     src = [p for p in reached_poses if p in L]
@@ -207,7 +212,7 @@ def route_link(L: nx.Graph, reached_poses: set, goal_pose: int) -> tuple[int, in
     return (path[0], path[1]) if len(path) > 1 else None
 
 
-def _cut_cause(t: Tables, L: nx.Graph, reached_poses: set, leads_on: dict, status: np.ndarray) -> tuple[str, dict]:
+def _cut_cause(t: Tables, L: nx.DiGraph, reached_poses: set, leads_on: dict, status: np.ndarray) -> tuple[str, dict]:
     """The cause when the graph is cut past the poses the start reaches (module docstring, 5–6): the
     class (:func:`link_classes`) of the first link the nearest lattice route to the goal takes out of
     them; without one, the primitive of most refused edges leading on."""

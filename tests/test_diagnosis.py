@@ -72,6 +72,15 @@ def test_no_pivot_candidate_between_grasps_is_no_shared_grasp():
     assert d["links_leading_on"] == {"no_shared_grasp": 1}
 
 
+def test_a_tumble_link_off_the_goal_does_not_connect_the_goal():
+    """The only link between poses 1 and 2 tumbles the object from the goal pose onto pose 1: the
+    search cannot roll it back that way, so the goal is not connected to the start's lattice."""
+    ctx = toy(pivot12_exists=False)
+    ctx.links = table(pose_a=[0, 2], pose_b=[1, 1], primitive=["pivot", "tumble"])
+    d = infeasible(ctx)["diagnosis"]
+    assert not d["goal_connected"] and d["cause"] == "goal_not_connected"
+
+
 def test_a_usp_start_is_start_not_sp():
     p = infeasible(toy(support0="USP"))
     assert p["reason"] == "no path in the graph: the start pose is not SP"
