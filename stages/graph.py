@@ -819,17 +819,37 @@ def hold_edges(catches: dict, holds: dict, grasps, q_g, X_WO, collide, weight: f
 class PushLimits(NamedTuple):
     """What a pushing ball can do, as the tumbling MPC bounds it (``stages.trajectory.make_env``): the
     ball's friction coefficient ``mu`` (the scene's times ``friction_safety``), the bound on its normal
-    force ``f_max`` (N) and the weight it lifts ``weight`` (N)."""
+    force ``f_max`` (N), the weight it lifts ``weight`` (N) and the friction coefficient ``mu_table`` of
+    the edge it turns the object on (the table's times ``friction_safety``)."""
 
     mu: float
     f_max: float
     weight: float
+    mu_table: float
 
 
 def push_limits(scene: Scene, params: Params) -> PushLimits:
     """The :class:`PushLimits` of ``scene``'s ball and object."""
     return PushLimits(params.friction_safety * scene.object.friction, scene.robot.max_eef_force,
-                      scene.object.mass * mpc.Params().g)
+                      scene.object.mass * mpc.Params().g, params.friction_safety * scene.table.friction)
+
+
+def tip_holds(com_W: np.ndarray, edge_W: np.ndarray, p_W: np.ndarray, n_W: np.ndarray,
+              limits: PushLimits) -> np.ndarray:
+    """Whether a ball alone on each contact can start a tumble, ``(n,)`` bool: the object stays in
+    equilibrium on the edge it turns about alone (its other table contacts just lifting, the hardest
+    instant: the turn then brings the CoM over the edge), the ball's force in its friction cone
+    (``limits.mu``) with its normal part at most ``limits.f_max``, the edge's two ends in the table's
+    (``limits.mu_table``): the stability LP (§4.3, eq. 1-4) with the edge as the support and the
+    pusher as the only EEF, as the tumbling MPC's first row is (§5.2.2, Fig. 14). A push whose
+    horizontal part the edge's friction cannot hold slides the object instead of tipping it.
+    ``com_W (n, 3)``, ``edge_W (n, 2, 3)``, contact points ``p_W`` and outward normals ``n_W (n, 3)``, W."""
+    if not len(p_W):
+        return np.zeros(0, bool)
+    prm = stability.Params(mu_eef=limits.mu, mu_table=limits.mu_table, f_max=limits.f_max)
+    res = stability.evaluate(limits.weight / prm.g, com_W, edge_W, None, p_W[:, None], -n_W[:, None], None, 1.0,
+                             prm, compute_margin=False)
+    return res.stable
 
 
 def push_levers(p_W: np.ndarray, n_W: np.ndarray, p_axis: np.ndarray, a_axis: np.ndarray, mu: float) -> np.ndarray:
@@ -895,12 +915,15 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
     last pose repeated to the longest push's length); per arm, the contacts on its side of the object,
     not under it, whose best push (:func:`push_levers`, about the roll's first axis at the start)
     overcomes the weight's moment about that axis within the force bound (the catcher's ball, on the
-    landing face, can only resist the turn), best first: largest moment less half the contact's offset
-    from the CoM along the axis (as the catchers of ``stages.trajectory``): a push off the CoM's line
-    twists the object on its edge (Exp. 3's piano pushed 9 cm off it slid 19 mm on its edge in
-    PyBullet, 4.5 mm pushed in line)."""
+    landing face, can only resist the turn) and that can start the tumble on the edge's friction
+    (:func:`tip_holds`), best first: largest moment less half the contact's offset from the CoM along
+    the axis (as the catchers of ``stages.trajectory``): a push off the CoM's line twists the object on
+    its edge (Exp. 3's piano pushed 9 cm off it slid 19 mm on its edge in PyBullet, 4.5 mm pushed in
+    line)."""
     K = len(Xa)
-    rows, why, pushes = [], np.full(K, "no_pusher_contact", dtype=object), [None] * K
+    why, pushes = np.full(K, "no_pusher_contact", dtype=object), [None] * K
+    found = []  # (tumble, its lever-passing contacts, their rank scores (C,), contacts (C, 3) W)
+    tips = ([], [], [], [])  # CoM, edge, contact point and normal of every lever-passing contact (W)
     for k in range(K):  # a few hundred tumbles: geometry only, the IK and collisions are batched after
         try:
             roll = poses.roll_segments(model, Xa[k], int(edges[k, 0]), int(edges[k, 1]))
@@ -918,7 +941,17 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
         com = se3.transform_points(Xa[k], model.com)
         weight_moment = limits.weight * np.cross(a, com - roll.p_axis[0])[2]  # what the push must overcome
         good = np.flatnonzero((lever * limits.f_max > weight_moment) & (lever > 0.0) & (n_W[:, 2] > -0.5))
-        good = good[np.argsort(-(lever - 0.5 * np.abs((p_W - com) @ a))[good], kind="stable")]
+        found.append((k, good, lever - 0.5 * np.abs((p_W - com) @ a), p_W))
+        edge = se3.transform_points(roll.X_seg[0], model.vertices[roll.edge[0]])
+        for acc, x in zip(tips, (np.broadcast_to(com, (len(good), 3)), np.broadcast_to(edge, (len(good), 2, 3)),
+                                 p_W[good], n_W[good]), strict=True):
+            acc.append(x)
+    holds = tip_holds(*(np.concatenate(x) for x in tips), limits) if found else np.zeros(0, bool)
+    rows, i0 = [], 0
+    for k, good, score, p_W in found:
+        ok, i0 = holds[i0:i0 + len(good)], i0 + len(good)
+        good = good[ok]
+        good = good[np.argsort(-score[good], kind="stable")]
         for j, arm in enumerate(("left", "right")):
             if arm not in arms:
                 continue

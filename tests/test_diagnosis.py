@@ -196,18 +196,38 @@ def test_scene_tilting_sixty_degrees_rejects_the_pivots_that_lead_on(piano):
     assert d["start"]["grasps"] > 0 and d["goal"]["grasps"] > 0 and d["goal_connected"]
 
 
-def test_scene_on_its_back_names_the_first_barrier_of_the_nearest_route_to_the_goal(piano):
-    """The piano to be laid on its back 0.1 m further: the nearest lattice route out of what the start
-    reaches pivots onto a pose with no grasp (the cause), and the tumbles that would lead on are out of
-    the pushing arm's reach (counted among the links leading on)."""
+def test_scene_on_its_back_has_no_pusher_for_the_tumbles_onto_that_face(piano):
+    """The piano to be laid on its back 0.1 m further: the tumbles onto its back land on it only by
+    pushes that no arm reaches (the pushers that could start them on the table's friction, ``graph.
+    tip_holds``, are out of reach), which is the cause; most refused tumbles leading on are the pusher's."""
     p = plan_scene(piano, "push", **{"goal.down": [0, 1, 0], "start.xy": [0.1, 0.0], "goal.xy": [0.2, 0.0],
                                      "planner.max_poses": 30})
     d = p["diagnosis"]
-    assert p["reason"] == "no path in the graph: the poses that lead on have no grasp"
-    assert d["route_link"]["class"] == "next_pose_has_no_grasp"
-    assert d["links_leading_on"].get("tumble:ik_unreachable", 0) >= 1
+    assert p["reason"] == "no path in the graph: the pushing arm cannot reach the tumbles that lead on"
+    onto = d["tumbles_onto_goal_face"]
+    assert onto["links"] > 0 and onto["edges_ok"] == 0 and onto["cause"] == "pusher_out_of_reach"
     tumbles = d["leads_on_rejected"]["tumble"]
     assert tumbles.get("ik_unreachable", 0) + tumbles.get("joint_limit", 0) >= sum(tumbles.values()) / 2
+
+
+def test_a_route_onto_a_pose_without_grasps_names_it_as_the_barrier():
+    """Poses 0-1-2-3 pivoted in a row, the goal 3: pose 2 has no grasp, so the nearest route leaves the
+    reached poses (0, 1) onto a pose with no grasp, which is the cause."""
+    nodes = table(node_id=np.arange(7), kind=["grasp"] * 3 + ["free"] * 4, pose_id=[0, 1, 3, 0, 1, 2, 3],
+                  grasp_id=[0, 1, 2, -1, -1, -1, -1], support=["SP"] * 7)
+    a, b = [0, 1, 2, 0], [3, 4, 6, 1]
+    edges = table(edge_id=np.arange(4), node_a=a, node_b=b, primitive=["regrasp"] * 3 + ["pivot"],
+                  status=["ok"] * 4, directed=np.zeros(4, bool), weight=np.ones(4))
+    ctx = SimpleNamespace(nodes=nodes, edges=edges, poses=table(placement_id=[0] * 4, support=["SP"] * 4,
+                                                                status=["ok"] * 4),
+                          links=table(pose_a=[0, 1, 2], pose_b=[1, 2, 3], primitive=["pivot"] * 3),
+                          rejects=table(pose_id=[2], reason=["ik_unreachable"]),
+                          sample={"goal": {"pose_id": 3}, "face_route": [0]})
+    p = infeasible(ctx)
+    d = p["diagnosis"]
+    assert p["reason"] == "no path in the graph: the poses that lead on have no grasp"
+    assert d["route_link"] == {"poses": [1, 2], "class": "next_pose_has_no_grasp"}
+    assert d["links_leading_on"] == {"next_pose_has_no_grasp": 1}
 
 
 def test_a_route_whose_links_pass_from_grasps_the_start_does_not_reach_says_so():

@@ -198,8 +198,9 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     along x, tipped over its far bottom edge: a ball pushes on the near side face (facing the robot),
     high up, where its best push lifts the box within the force bound (the old 50 deg cone about the
     contact's motion found no contact), and its joints follow the roll to the release angle with the
-    ball on its contact; the best in line with the CoM. With a 5 N force bound no contact's push lifts
-    the box."""
+    ball on its contact; the best in line with the CoM. That needs an edge that does not slide: on the
+    scene's table no push starts the tip (:func:`graph.tip_holds`), on a rubber mat one does. With a
+    5 N force bound no contact's push lifts the box."""
     import trimesh
 
     from stages import analyze
@@ -221,7 +222,12 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     collide = make_scene_collision_fn(scene, robot, mesh)
     gp, r = graph.Params(), scene.robot.ball_radius
     limits = graph.push_limits(scene, gp)
-    assert limits == (0.8 * 0.5, 50.0, pytest.approx(3.0 * 9.81))
+    assert limits == (0.8 * 0.5, 50.0, pytest.approx(3.0 * 9.81), 0.8 * 0.5)
+    # On the scene's table (0.8 x 0.5) no push starts the tip: the push's horizontal part that lifts
+    # the CoM 0.15 m from the edge exceeds what the edge's friction holds, and the box would slide.
+    assert graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits) == \
+        (None, "no_pusher_contact", None)
+    limits = limits._replace(mu_table=1.0)  # a rubber mat: the edge holds
     arm, c, q = graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits)
     assert arm is not None, c
     p_W, n_W = se3.transform_points(X, pc[c]), se3.rotate_vectors(X, nc[c])
@@ -243,7 +249,7 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     arm, c, _ = graph.pusher_motion(robot, free, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits, ("right",))
     p_W = se3.transform_points(X, pc[c])
     assert arm == "right" and p_W[2] > 0.22 and abs((p_W - se3.transform_points(X, model.com)) @ roll.a_axis[0]) < 0.04
-    weak = graph.PushLimits(limits.mu, 5.0, limits.weight)
+    weak = limits._replace(f_max=5.0)
     assert graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, weak) == \
         (None, "no_pusher_contact", None)
 
@@ -383,3 +389,18 @@ def test_the_later_stages_check_with_the_samplers_clearances(small_build):
     grasps = artifacts.read_table(b / "sample" / "grasps.parquet", "grasps")
     assert sample.clearance_of(grasps.meta["params"]) == want
     assert sample.clearance_of(artifacts.read_json(b / "plan.json", "plan")["meta"]["params"]) == want
+
+
+def test_tip_holds_needs_the_edge_friction_that_balances_the_push():
+    """A 0.2 m cube of 1 kg tipped over its edge x = +0.1 by a frictionless ball pushing +x on the far
+    face at 0.18 m: at the tip's start the push is m g 0.1 / 0.18 = 0.556 m g, all of it held by the
+    edge's friction, so the table needs mu >= 0.556 (0.64 for the inscribed six-sided pyramid's worst
+    direction); a ball pushing at 0.18 m within a 5 N bound cannot."""
+    from stages import graph
+
+    com, edge = np.array([[0.0, 0.0, 0.1]]), np.array([[[0.1, -0.1, 0.0], [0.1, 0.1, 0.0]]])
+    p, n = np.array([[-0.1, 0.0, 0.18]]), np.array([[-1.0, 0.0, 0.0]])
+    lim = graph.PushLimits(mu=0.0, f_max=50.0, weight=9.81, mu_table=0.5)
+    assert not graph.tip_holds(com, edge, p, n, lim)[0]
+    assert graph.tip_holds(com, edge, p, n, lim._replace(mu_table=0.7))[0]
+    assert not graph.tip_holds(com, edge, p, n, lim._replace(mu_table=0.7, f_max=5.0))[0]
