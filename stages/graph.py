@@ -841,8 +841,9 @@ def tip_holds(com_W: np.ndarray, edge_W: np.ndarray, p_W: np.ndarray, n_W: np.nd
     instant: the turn then brings the CoM over the edge), the ball's force in its friction cone
     (``limits.mu``) with its normal part at most ``limits.f_max``, the edge's two ends in the table's
     (``limits.mu_table``): the stability LP (§4.3, eq. 1-4) with the edge as the support and the
-    pusher as the only EEF, as the tumbling MPC's first row is (§5.2.2, Fig. 14). A push whose
-    horizontal part the edge's friction cannot hold slides the object instead of tipping it.
+    pusher as the only EEF, as the tumbling MPC's first row is when no catcher helps (a drop, §5.2.2,
+    Fig. 14). A push whose horizontal part the edge's friction cannot hold slides the object instead of
+    tipping it, unless another ball holds that part.
     ``com_W (n, 3)``, ``edge_W (n, 2, 3)``, contact points ``p_W`` and outward normals ``n_W (n, 3)``, W."""
     if not len(p_W):
         return np.zeros(0, bool)
@@ -915,11 +916,12 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
     last pose repeated to the longest push's length); per arm, the contacts on its side of the object,
     not under it, whose best push (:func:`push_levers`, about the roll's first axis at the start)
     overcomes the weight's moment about that axis within the force bound (the catcher's ball, on the
-    landing face, can only resist the turn) and that can start the tumble on the edge's friction
-    (:func:`tip_holds`), best first: largest moment less half the contact's offset from the CoM along
-    the axis (as the catchers of ``stages.trajectory``): a push off the CoM's line twists the object on
-    its edge (Exp. 3's piano pushed 9 cm off it slid 19 mm on its edge in PyBullet, 4.5 mm pushed in
-    line)."""
+    landing face, can only resist the turn). Those that start the tumble alone on the edge's friction
+    (:func:`tip_holds`: a drop needs it; with a catcher, whose ball may take the push's horizontal part,
+    the others may do) come first, then the others; each best first: largest moment less half the
+    contact's offset from the CoM along the axis (as the catchers of ``stages.trajectory``): a push off
+    the CoM's line twists the object on its edge (Exp. 3's piano pushed 9 cm off it slid 19 mm on its
+    edge in PyBullet, 4.5 mm pushed in line)."""
     K = len(Xa)
     why, pushes = np.full(K, "no_pusher_contact", dtype=object), [None] * K
     found = []  # (tumble, its lever-passing contacts, their rank scores (C,), contacts (C, 3) W)
@@ -947,16 +949,18 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
                                  p_W[good], n_W[good]), strict=True):
             acc.append(x)
     holds = tip_holds(*(np.concatenate(x) for x in tips), limits) if found else np.zeros(0, bool)
-    rows, i0 = [], 0
+    rows, i0, n = [], 0, params.push_candidates
     for k, good, score, p_W in found:
         ok, i0 = holds[i0:i0 + len(good)], i0 + len(good)
-        good = good[ok]
-        good = good[np.argsort(-score[good], kind="stable")]
+        order = np.lexsort((-score[good], ~ok))  # those that start the tip alone first, each best first
+        ranked, tip = good[order], ok[order]
         for j, arm in enumerate(("left", "right")):
             if arm not in arms:
                 continue
-            side = p_W[good, 1] >= Xa[k][1, 3] if arm == "left" else p_W[good, 1] <= Xa[k][1, 3]
-            rows += [(k, j, int(c), rank) for rank, c in enumerate(_spread(good[side], params.push_candidates))]
+            side = p_W[ranked, 1] >= Xa[k][1, 3] if arm == "left" else p_W[ranked, 1] <= Xa[k][1, 3]
+            r, t = ranked[side], tip[side]
+            pick = np.concatenate([_spread(r[t], n), _spread(r[~t], max(n - int(t.sum()), 0))])
+            rows += [(k, j, int(c), rank) for rank, c in enumerate(pick)]
     S = max([len(x) for x in pushes if x is not None], default=1)
     X_push = np.zeros((K, S, 4, 4))
     for k, x in enumerate(pushes):

@@ -193,14 +193,21 @@ def test_release_angle_is_past_the_tip_over_and_never_before_the_push_angle():
     assert graph.release_angle(model, poses.roll_segments(model, X, e0, e1), gp) == pytest.approx(gp.push_angle)
 
 
+def _tip_inputs(model, X, roll, pc, nc):
+    """``tip_holds``' inputs for every contact of the object at ``X`` tumbling along ``roll``."""
+    n, edge = len(pc), se3.transform_points(roll.X_seg[0], model.vertices[roll.edge[0]])
+    return (np.repeat(se3.transform_points(X, model.com)[None], n, 0), np.repeat(edge[None], n, 0),
+            se3.transform_points(X, pc), se3.rotate_vectors(X, nc))
+
+
 def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_path):
     """The benchmark's box (0.40 x 0.30 x 0.25 m, 3 kg) lying flat at the table's centre, its 0.30 side
     along x, tipped over its far bottom edge: a ball pushes on the near side face (facing the robot),
     high up, where its best push lifts the box within the force bound (the old 50 deg cone about the
     contact's motion found no contact), and its joints follow the roll to the release angle with the
-    ball on its contact; the best in line with the CoM. That needs an edge that does not slide: on the
-    scene's table no push starts the tip (:func:`graph.tip_holds`), on a rubber mat one does. With a
-    5 N force bound no contact's push lifts the box."""
+    ball on its contact; the best in line with the CoM. No push starts the tip alone on the scene's
+    table (:func:`graph.tip_holds`), on a rubber mat those that do rank first. With a 5 N force bound
+    no contact's push lifts the box."""
     import trimesh
 
     from stages import analyze
@@ -223,11 +230,16 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     gp, r = graph.Params(), scene.robot.ball_radius
     limits = graph.push_limits(scene, gp)
     assert limits == (0.8 * 0.5, 50.0, pytest.approx(3.0 * 9.81), 0.8 * 0.5)
-    # On the scene's table (0.8 x 0.5) no push starts the tip: the push's horizontal part that lifts
-    # the CoM 0.15 m from the edge exceeds what the edge's friction holds, and the box would slide.
-    assert graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits) == \
-        (None, "no_pusher_contact", None)
-    limits = limits._replace(mu_table=1.0)  # a rubber mat: the edge holds
+    # On the scene's table (0.8 x 0.5) few pushes start the tip alone: the horizontal part of a push
+    # that lifts the CoM 0.15 m from the edge exceeds what the edge's friction holds (a catcher may
+    # take it); on a rubber mat (1.0) more do, and they rank first.
+    hits = [graph.tip_holds(*_tip_inputs(model, X, roll, pc, nc), lim)
+            for lim in (limits, limits._replace(mu_table=1.0))]
+    assert hits[1].sum() > hits[0].sum()
+    mat = graph._push_candidates(model, X[None], roll.X_end[None], np.array([[e0, e1]]), pc, nc, gp,
+                                 limits._replace(mu_table=1.0), ("left", "right")).rows
+    first = mat[mat[:, 3] == 0, 2]
+    assert len(first) and hits[1][first].all()
     arm, c, q = graph.pusher_motion(robot, collide, model, X, roll.X_end, e0, e1, pc, nc, r, gp, limits)
     assert arm is not None, c
     p_W, n_W = se3.transform_points(X, pc[c]), se3.rotate_vectors(X, nc[c])
