@@ -418,6 +418,41 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
     t1 = time.perf_counter()
 
     # --- pivot edges --------------------------------------------------------------------------
+    by_pose, cand = pivot_candidates(grasps, links)
+    v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
+    checks = PivotChecks(scene, model, tables, robot, collide, X_WO,
+                         np.stack([links["pose_a"], links["pose_b"]], axis=1), links["vertex"],
+                         np.stack([links["edge_v0"], links["edge_v1"]], axis=1),
+                         [set(x.tolist()) for x in grasps["pivot_vertices"]], p_g, n_g, q_g)
+    status = check_pivot_edges(checks, cand, params)
+    edges += [(ga, gb, "pivot", w.pivot, str(st), vi, -1, -1, "both")
+              for (ga, gb, _), st, vi in zip(cand.tolist(), status, v.tolist(), strict=True)]
+    t2 = time.perf_counter()
+
+    # --- tumble edges -------------------------------------------------------------------------
+    push_edges, catches = pushed_tumble_edges(scene, model, tables, robot, collide, X_WO, ps, links, grasps,
+                                              free_of_pose, G + len(kept_sp), params)
+    edges += push_edges
+    sq = squeeze_candidates(links, ps["support"], by_pose)
+    edges += [(ga, gb, "tumble", w.tumble, str(st), -1, int(links["edge_v0"][li]), int(links["edge_v1"][li]), "both")
+              for (ga, gb, li), st in zip(sq.tolist(), check_squeeze_edges(checks, sq, params), strict=True)]
+    edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
+    holds = hold_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], catches, params)
+    holds["node_id"] = G + len(kept_sp) + len(catches["node_id"]) + np.arange(len(holds["pose_id"]))
+    edges += hold_edges(catches, holds, grasps, q_g, X_WO, collide, w.regrasp)
+    t3 = time.perf_counter()
+
+    nodes, one = with_one_ball_nodes(nodes, catches, holds)
+    edge_cols = edge_table(edges, one["node_id"])
+    summary = graph_summary(nodes, edge_cols, catches, holds)
+    timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
+    return Graph(nodes, edge_cols, one, summary, timings)
+
+
+def pivot_candidates(grasps, links) -> tuple[dict, np.ndarray]:
+    """Pivot edge candidates: per pivot link, every grasp of its pose ``a`` whose contact pair is also a
+    grasp of its pose ``b`` (a pivot keeps its grasp, §5.1). Returns ``by_pose`` (pose -> (left, right
+    contact) -> grasp id) and ``cand (n, 3)`` rows (grasp at a, grasp at b, link)."""
     by_pose: dict[int, dict[tuple, int]] = {}
     for gi, (pose, cl, cr) in enumerate(zip(grasps["pose_id"].tolist(), grasps["contact_left"].tolist(),
                                             grasps["contact_right"].tolist(), strict=True)):
@@ -430,18 +465,31 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
         for key, gi in ga.items():
             if key in gb:
                 cand.append((gi, gb[key], li))
-    cand = np.array(cand, dtype=np.int64).reshape(-1, 3)
-    v = links["vertex"][cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
-    checks = PivotChecks(scene, model, tables, robot, collide, X_WO,
-                         np.stack([links["pose_a"], links["pose_b"]], axis=1), links["vertex"],
-                         np.stack([links["edge_v0"], links["edge_v1"]], axis=1),
-                         [set(x.tolist()) for x in grasps["pivot_vertices"]], p_g, n_g, q_g)
-    status = check_pivot_edges(checks, cand, params)
-    edges += [(ga, gb, "pivot", w.pivot, str(st), vi, -1, -1, "both")
-              for (ga, gb, _), st, vi in zip(cand.tolist(), status, v.tolist(), strict=True)]
-    t2 = time.perf_counter()
+    return by_pose, np.array(cand, dtype=np.int64).reshape(-1, 3)
 
-    # --- tumble edges -------------------------------------------------------------------------
+
+def with_one_ball_nodes(nodes: dict, catches: dict, holds: dict) -> tuple[dict, dict]:
+    """The node table with the catch and hold nodes (USP, one ball holding) appended, and those nodes'
+    own table (``catches.parquet``: node, pose, arm, contact, status, joints ``q``, kind)."""
+    one = {k: np.concatenate([catches[k], holds[k]]) for k in ("node_id", "pose_id", "arm", "contact", "status")}
+    one["q"] = np.concatenate([catches["q"], holds["q"]])
+    one["kind"] = np.r_[np.full(len(catches["node_id"]), "catch"), np.full(len(holds["pose_id"]), "hold")]
+    n = len(one["node_id"])
+    return {"node_id": np.r_[nodes["node_id"], one["node_id"]],
+            "kind": np.r_[nodes["kind"], one["kind"]],
+            "pose_id": np.r_[nodes["pose_id"], one["pose_id"]].astype(np.int64),
+            "grasp_id": np.r_[nodes["grasp_id"], -np.ones(n, np.int64)],
+            "support": np.r_[nodes["support"], np.full(n, "USP")].astype(str)}, one
+
+
+def pushed_tumble_edges(scene: Scene, model, tables, robot, collide, X_WO: np.ndarray, ps, links, grasps,
+                        free_of_pose: np.ndarray, first_catch: int, params: Params) -> tuple[list, dict]:
+    """The tumble edges a pusher makes out of every SP pose's free node (§5.2.2, Fig. 14): into SP onto
+    the landing's free node, into USP onto a catch node of the other arm (:func:`catch_candidates`,
+    numbered from ``first_catch``); a tumble with no pusher (:func:`pusher_motions`) gets its reason on
+    every edge. ``free_of_pose (N,)`` is each pose's free node (-1 for none). Returns the edge rows and
+    the catch table (with its ``node_id``)."""
+    w, r = scene.planner.weights, scene.robot.ball_radius
     con = tables["contacts"]
     pc = np.stack([con["px"], con["py"], con["pz"]], axis=1)
     nc = np.stack([con["nx"], con["ny"], con["nz"]], axis=1)
@@ -460,11 +508,12 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
         own.setdefault((pose, "right"), set()).add(cr)
     catches = catch_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], lb[into_usp],
                                tumble_edges[into_usp], params, own)
-    catch_ids = G + len(kept_sp) + np.arange(len(catches["pose_id"]))
+    catch_ids = first_catch + np.arange(len(catches["pose_id"]))
     catches["node_id"] = catch_ids
     by_landing: dict[tuple, list] = {}  # (pose, catcher arm) -> catch nodes
     for n, pose, arm in zip(catch_ids.tolist(), catches["pose_id"].tolist(), catches["arm"].tolist(), strict=True):
         by_landing.setdefault((pose, arm), []).append(n)
+    edges = []
     for a, b, (e0, e1), (arm, what, _) in zip(la, lb, tumble_edges, found, strict=True):
         pusher, why = (arm, "ok") if arm is not None else ("none", what)
         src = free_of_pose[a]
@@ -477,28 +526,7 @@ def build_graph(scene: Scene, analysis_dir, sample_dir, params: Params) -> Graph
             for n in by_landing.get((int(b), catcher), []):
                 st = why if why != "ok" else str(catches["status"][n - catch_ids[0]])
                 edges.append((src, n, "tumble", w.tumble, st, -1, e0, e1, pusher))
-    sq = squeeze_candidates(links, ps["support"], by_pose)
-    edges += [(ga, gb, "tumble", w.tumble, str(st), -1, int(links["edge_v0"][li]), int(links["edge_v1"][li]), "both")
-              for (ga, gb, li), st in zip(sq.tolist(), check_squeeze_edges(checks, sq, params), strict=True)]
-    edges += handover_edges(catches, grasps, q_g, X_WO, collide, w.regrasp)
-    holds = hold_candidates(scene, model, tables, robot, collide, X_WO, ps["placement_id"], catches, params)
-    holds["node_id"] = G + len(kept_sp) + len(catch_ids) + np.arange(len(holds["pose_id"]))
-    edges += hold_edges(catches, holds, grasps, q_g, X_WO, collide, w.regrasp)
-    t3 = time.perf_counter()
-
-    one = {k: np.concatenate([catches[k], holds[k]]) for k in ("node_id", "pose_id", "arm", "contact", "status")}
-    one["q"] = np.concatenate([catches["q"], holds["q"]])
-    one["kind"] = np.r_[np.full(len(catch_ids), "catch"), np.full(len(holds["pose_id"]), "hold")]
-    nc_ = len(one["node_id"])
-    nodes = {"node_id": np.r_[nodes["node_id"], one["node_id"]],
-             "kind": np.r_[nodes["kind"], one["kind"]],
-             "pose_id": np.r_[nodes["pose_id"], one["pose_id"]].astype(np.int64),
-             "grasp_id": np.r_[nodes["grasp_id"], -np.ones(nc_, np.int64)],
-             "support": np.r_[nodes["support"], np.full(nc_, "USP")].astype(str)}
-    edge_cols = edge_table(edges, one["node_id"])
-    summary = graph_summary(nodes, edge_cols, catches, holds)
-    timings = {"regrasp": t1 - t0, "pivot": t2 - t1, "tumble": t3 - t2, "total": time.perf_counter() - t0}
-    return Graph(nodes, edge_cols, one, summary, timings)
+    return edges, catches
 
 
 def edge_table(edges: list[tuple], one_ball_nodes: np.ndarray) -> dict:

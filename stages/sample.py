@@ -411,8 +411,7 @@ def lazy_reach(G: nx.DiGraph, goal: int, cands: dict, check, verified: dict, wal
                 if not G.has_edge(u, v):
                     continue
                 links = G.edges[u, v]["links"]
-                links[:] = [li for li in links if all((ga, gb, li) not in verified for ga, gb in cands[li])
-                            or any(verified.get((ga, gb, li)) for ga, gb in cands[li])]
+                links[:] = [li for li in links if any(verified.get((ga, gb, li), True) for ga, gb in cands[li])]
                 if not links:
                     G.remove_edge(u, v)
                     cut |= (u, v) == (a, b)
