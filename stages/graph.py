@@ -14,14 +14,15 @@ Nodes (``nodes.parquet``):
 Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its reason code):
 
 - **pivot** (weight ``w_pivot``): two grasp nodes with the same contacts on two poses linked by a
-  pivot about vertex v (§5.2.1). Checked along the tilt → rotate → lower motion sampled from
-  ``stages.mpc.pivot_reference``: batched IK along the path seeded from the first node (no branch
-  flips), the arms free of collision at every sample, each ball's tool axis turning against its
-  contact normal by at most ``max_eef_normal_change`` (§5.1's check, ``eef_normal_angle``), and the
-  object in equilibrium on v with the two balls at the start of the tilt and at the largest tilt (v
-  among both grasps' ``pivot_vertices``, ``stages.sample``, then the stability LP at the largest tilt,
-  with the friction and ball force the plan's MPC may use, ``friction_safety`` and ``force_safety``).
-  Undirected.
+  pivot about vertex v (§5.2.1), with the object in equilibrium on v with the two balls at the start
+  of the tilt and at the largest tilt of the tilt → rotate → lower motion (``stages.mpc.
+  pivot_reference``): v among both grasps' ``pivot_vertices`` (``stages.sample``), then the stability
+  LP at the largest tilt, with the friction and ball force the plan's MPC may use
+  (``friction_safety`` and ``force_safety``). The arms along that motion (IK, collisions, each ball's
+  tool axis turning against its contact normal by at most ``max_eef_normal_change``, §5.1's
+  ``eef_normal_angle``) are checked lazily by ``pivot plan`` on the paths it walks (LazySP, §5.3's
+  re-search), or here with ``pivot_arms``: batched IK seeded from the first node's grasp, collisions
+  at every sample. Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between any two grasps of the pose whose balls can change their contacts one at a time, each
   move made while the other ball alone holds the object on its table edge (``hold_*``, §5.2.2;
@@ -115,6 +116,12 @@ class Params:
     #: reproduced runs' pivots turn it by 7-72 deg (Exp. 1's widest, 2.5 cm of rolling) and succeed,
     #: nominal and perturbed. On Exp. 1's graph the change's median is 35 deg, its 99th percentile 65.
     max_eef_normal_change: float = np.radians(75.0)
+    #: LazySP (§5.3: the motion is checked on the path the search takes, a failure re-searches): a
+    #: pivot edge's arm motion (IK, collisions, ``eef_normal_angle``) is checked here only with
+    #: ``pivot_arms``; otherwise ``pivot plan`` checks it on the paths it walks, from the robot's actual
+    #: joints. Those checks took nine tenths of the stage (the duck: 22 of 25 s) and refused one edge
+    #: in fourteen. The sampler's reach (``stages.sample.lazy_reach``) checks them, once per walk.
+    pivot_arms: bool = False
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
     #: (``stages.plan.Params``: 0.8 of the friction, each ball's whole force within 0.9 of the force
     #: bound, ``stability.normal_bound``), so that the search does not find pivots its MPC check then
@@ -249,12 +256,11 @@ class PivotChecks(NamedTuple):
 def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.ndarray:
     """Status of pivot edge candidates ``cand (n, 3)`` (grasp at a, grasp at b, link), ``(n,)``:
     ``unstable`` when either grasp does not list the link's vertex among its ``pivot_vertices``,
-    ``not_a_pivot``, then the arms along the tilt -> rotate -> lower reference
-    (:func:`check_arm_motion`, §5.1's ``eef_normal_angle``), then equilibrium on the vertex at the
-    largest tilt with both balls (the stability LP, eq. 1-4, ``friction_safety`` and ``force_safety``)."""
+    ``not_a_pivot``, then with ``params.pivot_arms`` the arms along the tilt -> rotate -> lower
+    reference (:func:`_pivot_arms`), then equilibrium on the vertex at the largest tilt with both balls
+    (:func:`_tilt_holds`)."""
     status = np.full(len(cand), "ok", dtype=object)
-    scene, model, robot, collide, X_WO = pc.scene, pc.model, pc.robot, pc.collide, pc.X_WO
-    p_g, n_g, q_g, r = pc.p_g, pc.n_g, pc.q_g, scene.robot.ball_radius
+    scene, model, X_WO = pc.scene, pc.model, pc.X_WO
     v = pc.link_vertex[cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
     piv_a = pc.pivot_sets
     for i, (ga, gb, _), vi in zip(range(len(cand)), cand.tolist(), v.tolist(), strict=True):  # set lookups
@@ -278,31 +284,45 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
     if len(live):
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])
-        ok, why = np.zeros(len(live), bool), np.empty(len(live), dtype=object)
-        for s in range(0, len(live), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
-            c = slice(s, s + params.pivot_chunk)
-            g = cand[live[c], 0]
-            ok[c], why[c], q_c = check_arm_motion(robot, collide, X_traj[c], p_g[g], n_g[g], q_g[g], r, params)
-            turned = ok[c] & (eef_normal_angle_change(robot, q_c, X_traj[c], n_g[g]) > params.max_eef_normal_change)
-            why[c][turned], ok[c][turned] = "eef_normal_angle", False
-        status[live] = why
+        ok = np.ones(len(live), bool)
+        if params.pivot_arms:
+            ok, status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)
         # Equilibrium on the vertex at the largest tilt (middle of the path) with both balls.
         live2 = live[ok]
         if len(live2):
-            Xm = X_traj[ok][:, T // 2]
-            ga = cand[live2, 0]
-            pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], p_g[ga]) + Xm[:, None, :3, 3]
-            nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], n_g[ga])
-            p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v[live2]]) + Xm[:, :3, 3]
-            mu = params.friction_safety * scene.object.friction
-            res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
-                                     pts, nrm, None, float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2),
-                                     stability.Params(mu_eef=mu, mu_table=params.friction_safety * scene.table.friction,
-                                                      f_max=stability.normal_bound(
-                                                          params.force_safety * scene.robot.max_eef_force, mu)),
-                                     compute_margin=False)
-            status[live2[~res.stable]] = "unstable"
+            status[live2[~_tilt_holds(pc, X_traj[ok][:, T // 2], cand[live2, 0], v[live2], params)]] = "unstable"
     return status
+
+
+def _pivot_arms(pc: PivotChecks, g: np.ndarray, X_traj: np.ndarray, params: Params):
+    """The arms along pivot references ``X_traj (E, T, 4, 4)`` with grasps ``g (E,)`` from their own
+    joints: :func:`check_arm_motion` and §5.1's ``eef_normal_angle``; ``ok (E,)``, reason ``(E,)``."""
+    ok, why = np.zeros(len(g), bool), np.empty(len(g), dtype=object)
+    r = pc.scene.robot.ball_radius
+    for s in range(0, len(g), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
+        c, gc = slice(s, s + params.pivot_chunk), g[s:s + params.pivot_chunk]
+        ok[c], why[c], q_c = check_arm_motion(pc.robot, pc.collide, X_traj[c], pc.p_g[gc], pc.n_g[gc], pc.q_g[gc],
+                                              r, params)
+        turned = ok[c] & (eef_normal_angle_change(pc.robot, q_c, X_traj[c], pc.n_g[gc]) > params.max_eef_normal_change)
+        why[c][turned], ok[c][turned] = "eef_normal_angle", False
+    return ok, why
+
+
+def _tilt_holds(pc: PivotChecks, Xm: np.ndarray, g: np.ndarray, v: np.ndarray, params: Params) -> np.ndarray:
+    """Whether grasps ``g (E,)`` hold the object on vertices ``v (E,)`` at poses ``Xm (E, 4, 4)`` (W):
+    the stability LP (eq. 1-4) with ``friction_safety`` and ``force_safety``, ``(E,)``."""
+    scene, model = pc.scene, pc.model
+    pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], pc.p_g[g]) + Xm[:, None, :3, 3]
+    nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], pc.n_g[g])
+    p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v]) + Xm[:, :3, 3]
+    mu = params.friction_safety * scene.object.friction
+    res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
+                             pts, nrm, None, float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2),
+                             stability.Params(mu_eef=mu, mu_table=params.friction_safety * scene.table.friction,
+                                              f_max=stability.normal_bound(
+                                                  params.force_safety * scene.robot.max_eef_force, mu)),
+                             compute_margin=False)
+    return res.stable
 
 
 def squeeze_candidates(links, support: np.ndarray, by_pose: dict) -> np.ndarray:

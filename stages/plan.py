@@ -9,12 +9,13 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   approach along the contact normals (``stages.transit``, OMPL's RRT-Connect). In SP the left arm
   moves, then the right; in USP the arms the edge names, one at a time, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
-  flips), collisions along it, where its balls roll to on the object (``stages.rolling``: summed
-  over the pivots of one grasp, each contact must stay on its surface, else ``ball_rolls_off``; §5.1
-  checks the ball's angle to the surface for the same reason), and the MPC of §5.2
-  (``stages.mpc.run_pivot_mpc``) with the friction and force constraints; ``mpc_infeasible`` is a
-  failure like any other, and so is ``mpc_marginal`` (feasible only near the force bound or with a
-  large tracking error).
+  flips), collisions along it, each ball's tool axis against its contact normal (§5.1's
+  ``eef_normal_angle``; the graph checks a pivot's statics only, ``stages.graph.Params.pivot_arms``),
+  where its balls roll to on the object (``stages.rolling``: summed over the pivots of one grasp,
+  each contact must stay on its surface, else ``ball_rolls_off``; §5.1 checks the ball's angle to
+  the surface for the same reason), and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
+  friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
+  ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
   posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
@@ -60,7 +61,7 @@ import numpy as np
 
 from stages import artifacts, diagnosis, mpc, poses, provenance, se3, squeeze, stagelog, transit
 from stages.graph import Params as GraphParams
-from stages.graph import check_arm_motion, push_limits, pusher_motion, release_angle
+from stages.graph import check_arm_motion, eef_normal_angle_change, push_limits, pusher_motion, release_angle
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.rolling import RollLimits, rolled_off, rolling_shift
@@ -141,6 +142,8 @@ class _Context:
         self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
         self.squeeze = squeeze.recorded(self.edges.meta["params"].get("squeeze", {}))  # the graph's own
+        self.max_eef_normal_change = float(self.edges.meta["params"].get(
+            "max_eef_normal_change", GraphParams().max_eef_normal_change))  # the graph's own, as the squeeze's
         catches = artifacts.read_table(gd / "catches.parquet", "catches")
         self.catch = {int(n): (str(a), int(c), np.asarray(q, dtype=float)) for n, a, c, q in
                       zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
@@ -282,6 +285,8 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                       ctx.scene.robot.ball_radius, GraphParams(), batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
+        if eef_normal_angle_change(ctx.robot, q, Xr[sub][None], n_c[None])[0] > ctx.max_eef_normal_change:
+            return False, "eef_normal_angle", step, state
         roll, detail = _rolled(ctx, params, state, q[:, 0], Xr[sub], p_c, n_c)
         if roll is None:
             return False, "ball_rolls_off", {**step, "detail": detail}, state

@@ -717,7 +717,7 @@ def _reach(scene, model, tables, lattice, placements: tuple[int, int], robot, co
     from stages import graph  # it imports this module's helpers, not this module
 
     grasps, rejects, timings = found
-    gp = graph.Params()
+    gp = graph.Params(pivot_arms=True)
     verified: dict = {}
     ps, reached = lattice.pose_set(), False
     for rounds in range(params.reach_rounds + 1):

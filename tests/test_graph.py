@@ -273,8 +273,10 @@ def test_pivot_edges_are_the_same_whatever_the_batch_size(small_build, tmp_path)
     from stages import artifacts, graph
 
     scene, b = small_build
-    ref = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
-    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph", replace(graph.Params(), pivot_chunk=7))
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "ref", replace(graph.Params(), pivot_arms=True))
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph",
+              replace(graph.Params(), pivot_arms=True, pivot_chunk=7))
+    ref = artifacts.read_table(tmp_path / "ref" / "edges.parquet", "edges")
     got = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
     assert (ref["primitive"] == "pivot").sum() > 7  # more than one batch
     assert (got["status"] == ref["status"]).all() and (got["node_a"] == ref["node_a"]).all()
@@ -311,17 +313,18 @@ def test_eef_normal_angle_change_is_the_turn_of_the_tool_against_the_normal():
 
 
 def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(small_build, tmp_path):
-    """With a 5 deg bound on the change of the ball-normal angle, pivot edges whose motion the default
-    passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict (but
+    """With the arms checked in the graph (``pivot_arms``) and a 5 deg bound on the change of the
+    ball-normal angle, pivot edges whose motion the default bound passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict (but
     squeeze tumbles, which the same bound refuses)."""
     from dataclasses import replace
 
     from stages import artifacts
 
     scene, b = small_build
-    ref = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "ref", replace(graph.Params(), pivot_arms=True))
+    ref = artifacts.read_table(tmp_path / "ref" / "edges.parquet", "edges")
     graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph",
-              replace(graph.Params(), max_eef_normal_change=np.radians(5.0)))
+              replace(graph.Params(), pivot_arms=True, max_eef_normal_change=np.radians(5.0)))
     got = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
     piv = ref["primitive"] == "pivot"
     turned = piv & (got["status"] == "eef_normal_angle")
@@ -333,6 +336,42 @@ def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(sma
     assert (ref["status"][squeezed] == "ok").all()
     same = ~turned & ~squeezed
     assert (got["status"][same] == ref["status"][same]).all()
+
+
+def test_the_graph_leaves_a_pivots_arm_motion_to_the_plan(small_build, tmp_path):
+    """LazySP: by default a pivot edge's arms are not checked in the graph (``Params.pivot_arms``): the
+    edges the arm checks refuse are kept (``ok``, or ``unstable`` by the equilibrium check they then
+    reach), and every other verdict is the arm-checked graph's."""
+    from dataclasses import replace
+
+    from stages import artifacts
+
+    scene, b = small_build
+    lazy = artifacts.read_table(b / "graph" / "edges.parquet", "edges")
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph", replace(graph.Params(), pivot_arms=True))
+    full = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
+    piv = full["primitive"] == "pivot"
+    armed = piv & ~np.isin(full["status"], ["ok", "unstable", "not_a_pivot"])
+    assert armed.any() and (lazy["status"][armed] == "ok").any()
+    assert np.isin(lazy["status"][armed], ["ok", "unstable"]).all()
+    assert (lazy["status"][~armed] == full["status"][~armed]).all()
+
+
+def test_the_plan_refuses_a_pivot_whose_balls_turn_too_far_against_the_normal(small_build, tmp_path):
+    """The plan checks §5.1's ``eef_normal_angle`` on the pivots it walks, with the graph's bound: at
+    5 deg it removes pivot edges for it (the graph, not checking a pivot's arms, kept them)."""
+    from dataclasses import replace
+
+    from stages import artifacts, plan
+
+    scene, b = small_build
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph",
+              replace(graph.Params(), max_eef_normal_change=np.radians(5.0)))
+    edges = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
+    assert "eef_normal_angle" not in edges["status"][edges["primitive"] == "pivot"]
+    out = plan.run(scene, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json",
+                   replace(plan.Params(), check_mpc=False, max_removals=20))
+    assert any(e.get("reason") == "eef_normal_angle" for e in out["log"])
 
 
 def _pivot_past_the_wrist():
