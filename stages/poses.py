@@ -220,26 +220,58 @@ class PoseSet:
     goal_id: int = -1  # the goal's pose id, -1 when not asked for or not reached
 
 
-def pivot_corners(model: ObjectModel, cluster: float, tilt: float | None = None) -> list[np.ndarray]:
-    """Per placement, the hull vertex ids of its support-polygon corners (one per cluster); with
-    ``tilt`` (rad), only the corners the object can be tilted onto alone (:func:`tilt_direction`)."""
-    out = []
-    for g, sup in enumerate(model.support):
-        sup = np.asarray(sup, dtype=np.int64)
-        p = se3.transform_points(model.X_TO[g], model.vertices[sup])[:, :2]
-        centre = p.mean(axis=0)
-        far = np.linalg.norm(p - centre, axis=1)
-        order = np.argsort(-far, kind="stable")
-        chosen: list[int] = []
-        for i in order:  # a handful of vertices per face
-            if all(np.linalg.norm(p[i] - p[j]) >= cluster for j in chosen):
-                chosen.append(i)
-        ids = np.sort(sup[chosen])
-        if tilt is not None:
-            ids = np.array([v for v in ids if _tilt_dir_O(model, v, model.X_TO[g], tilt) is not _NO_TILT],
-                           dtype=np.int64)
-        out.append(ids)
-    return out
+class PivotCorners:
+    """Per placement ``g``, ``corners[g]``: the hull vertex ids of its support-polygon corners (one per
+    ``cluster``); with ``tilt`` (rad), only those the object can be tilted onto alone
+    (:func:`tilt_direction`). Each placement's are found on first use: a rounded mesh has hundreds of
+    placements (the duck 893, at 10-40 ms of tilt search a corner) of which a lattice visits a few.
+    :meth:`holding` fixes one placement's to a subset, sharing the rest."""
+
+    def __init__(self, model: ObjectModel, cluster: float, tilt: float | None = None):
+        self.model, self.cluster, self.tilt = model, cluster, tilt
+        self._found: dict[int, np.ndarray] = {}
+        self._fixed: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.model.support)
+
+    def __getitem__(self, g: int) -> np.ndarray:
+        g = int(g)
+        if g in self._fixed:
+            return self._fixed[g]
+        if g not in self._found:
+            self._found[g] = _placement_corners(self.model, g, self.cluster, self.tilt)
+        return self._found[g]
+
+    def holding(self, g: int, ids: np.ndarray) -> PivotCorners:
+        """These corners with placement ``g``'s replaced by ``ids``."""
+        out = PivotCorners(self.model, self.cluster, self.tilt)
+        out._found, out._fixed = self._found, {**self._fixed, int(g): ids}
+        return out
+
+
+def pivot_corners(model: ObjectModel, cluster: float, tilt: float | None = None) -> PivotCorners:
+    """Per placement, the hull vertex ids of its support-polygon corners (:class:`PivotCorners`)."""
+    return PivotCorners(model, cluster, tilt)
+
+
+def _placement_corners(model: ObjectModel, g: int, cluster: float, tilt: float | None) -> np.ndarray:
+    """:class:`PivotCorners` of placement ``g``: its support vertices farthest from their centre first,
+    each at least ``cluster`` (m) from those chosen, sorted; with ``tilt``, those it tilts onto."""
+    sup = np.asarray(model.support[g], dtype=np.int64)
+    p = se3.transform_points(model.X_TO[g], model.vertices[sup])[:, :2]
+    centre = p.mean(axis=0)
+    far = np.linalg.norm(p - centre, axis=1)
+    order = np.argsort(-far, kind="stable")
+    chosen: list[int] = []
+    for i in order:  # a handful of vertices per face
+        if all(np.linalg.norm(p[i] - p[j]) >= cluster for j in chosen):
+            chosen.append(i)
+    ids = np.sort(sup[chosen])
+    if tilt is not None:
+        ids = np.array([v for v in ids if _tilt_dir_O(model, v, model.X_TO[g], tilt) is not _NO_TILT],
+                       dtype=np.int64)
+    return ids
 
 
 #: The most (m) a hull vertex may sink below the table's plane when the object tilts onto a pivot
@@ -299,13 +331,16 @@ def _tilt_dir_O(model: ObjectModel, v: int, X_WO: np.ndarray, tilt: float):
         h = z[:, None] * np.cos(tilt) + np.sin(tilt) * (s @ D.T)
         return h.min(axis=0), np.where(far[:, None], h, np.inf).min(axis=0)
 
+    low_c, low_far_c = lowest(dc[None])
+    if low_c[0] >= -TILT_TOLERANCE and low_far_c[0] >= TILT_CLEARANCE - 1e-9:  # clears: no search
+        model.tilt_dirs[key] = None
+        return None
     D = np.stack([np.cos(_TILT_ANGLES), np.sin(_TILT_ANGLES)], axis=1)
     cosa = D @ dc
     low, low_far = lowest(D)
     ok = (low >= -TILT_TOLERANCE) & (cosa > 0.0)
     # The clearance to seek: TILT_CLEARANCE, or the best one an allowed direction gives when less.
     want = min(TILT_CLEARANCE, float(np.max(np.where(ok, low_far, -np.inf)))) if ok.any() else np.inf
-    low_c, low_far_c = lowest(dc[None])
     if low_c[0] >= -TILT_TOLERANCE and low_far_c[0] >= want - 1e-9:  # a nanometre: the grid's rounding
         out = None
     else:
@@ -418,7 +453,7 @@ class _Lattice:
         """The lattice's poses and links so far (row id = pose id)."""
         return _to_pose_set(self.rows, self.links, self.goal_id)
 
-    def corners_at(self, i: int, usable: dict[int, np.ndarray] | None) -> list[np.ndarray]:
+    def corners_at(self, i: int, usable: dict[int, np.ndarray] | None) -> PivotCorners:
         """The pivot corners per placement for row ``i``: those its grasps hold where ``usable`` knows them."""
         return _held(self.corners, self.rows[i]["g"], (i,), usable)
 
@@ -671,7 +706,7 @@ def _join_trees(lat: _Lattice, a: list[int], b: list[int], params: Params,
     return joined
 
 
-def _held(corners: list[np.ndarray], g: int, rows: tuple[int, ...], usable: dict[int, np.ndarray] | None):
+def _held(corners: PivotCorners, g: int, rows: tuple[int, ...], usable: dict[int, np.ndarray] | None):
     """``corners`` (hull vertex ids per placement) with placement ``g``'s cut to those the grasps of every
     row in ``rows`` hold, where ``usable`` (row id -> vertex ids) knows them (:func:`extend_lattice`)."""
     if usable is None:
@@ -680,7 +715,7 @@ def _held(corners: list[np.ndarray], g: int, rows: tuple[int, ...], usable: dict
     for k in rows:
         if k in usable:
             ids = np.intersect1d(ids, usable[k])
-    return [*corners[:g], ids, *corners[g + 1:]]
+    return corners.holding(g, ids)
 
 
 def _connect(lat: _Lattice, corners, i: int, X_to: np.ndarray, g: int, params: Params, strides: int = 0) -> int:

@@ -452,10 +452,11 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
            "margin": np.zeros(N)}
     usp = ps.support[pose_id] == "USP"
     g = ps.placement[pose_id]
-    kmax = max(len(c) for c in corners)
+    placed = np.unique(ps.placement[pose_id]).tolist()  # the placements of these poses only
+    kmax = max([len(corners[gi]) for gi in placed], default=0)
     cid = -np.ones((len(corners), kmax), np.int64)  # padded corner ids per placement, sorted
-    for gi, c in enumerate(corners):
-        cid[gi, :len(c)] = c
+    for gi in placed:
+        cid[gi, :len(corners[gi])] = corners[gi]
     ids = cid[g]                                                                   # (N, kmax)
     V = se3.transform_points(X[:, None], model.vertices[np.maximum(ids, 0)])
     on = (ids >= 0) & np.all(np.abs(V[..., :2]) <= half, axis=2)                 # corner on the table

@@ -466,6 +466,21 @@ def test_the_tilt_direction_is_the_coms_where_every_other_vertex_rises():
         assert poses.tilt_direction(model, X, int(v), np.radians(8)) is None
 
 
+def test_pivot_corners_are_found_per_placement_on_first_use():
+    """``pivot_corners`` finds a placement's corners when first asked (a rounded mesh has hundreds of
+    placements, a lattice visits a few); :meth:`PivotCorners.holding` cuts one placement's and leaves
+    the others, and the corners it was made from, as they were."""
+    model = box_model()
+    X, g = upright(model)
+    corners = poses.pivot_corners(model, 0.03, np.radians(8))
+    assert len(corners) == len(model.support) == 6 and not corners._found
+    assert len(corners[g]) == 4 and list(corners._found) == [g]
+    other = (g + 1) % 6
+    held = corners.holding(g, corners[g][:1])
+    assert held[g].tolist() == corners[g][:1].tolist() and len(corners[g]) == 4
+    assert held[other].tolist() == corners[other].tolist() and other in corners._found  # found once, shared
+
+
 def test_a_wide_corner_tilts_off_the_coms_direction_so_that_no_neighbour_sinks():
     # Base corner v = (0, 0) with neighbours (0.5, 0.03) and (-0.3, 0.03); the CoM lies at x ~ 0.1, so
     # tilting straight towards it would sink (-0.3, 0.03) by ~15 mm into the table.
