@@ -1006,6 +1006,7 @@ class _Mesh:
     coarse: object  # its simplification (stages.simplify.collision_mesh): the same inside answer for
     coarse_tol: float  # ... points farther than this (m) from the surface; 0 when it is the mesh
     inner: np.ndarray  # (S, 4) spheres (centre, radius) inside the solid: a capsule reaching one hits
+    few: np.ndarray  # (k,) ids of hull planes facing evenly spread directions, clipped with first
 
 
 def _make_mesh(mesh, where: str) -> _Mesh:
@@ -1039,7 +1040,17 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     inner = _inner_spheres(coarse.mesh, coarse.tolerance, fcl_obj) if mesh.is_watertight else np.zeros((0, 4))
     return _Mesh(fcl_obj=fcl_obj, centre=centre, radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo,
                  hi=hi, planes=planes, convex=convex, mesh=mesh, coarse=coarse.mesh, coarse_tol=coarse.tolerance,
-                 inner=inner)
+                 inner=inner, few=_spread_planes(planes))
+
+
+def _spread_planes(planes: np.ndarray, k: int = 96) -> np.ndarray:
+    """Ids of the hull planes ``(F, 4)`` whose normals lie nearest ``k`` directions spread evenly over
+    the sphere (a Fibonacci lattice), sorted: a coarse polytope around the hull, :func:`_hull_separated`'s
+    first pass."""
+    i = np.arange(k) + 0.5
+    z, phi = 1.0 - 2.0 * i / k, np.pi * (1.0 + 5.0 ** 0.5) * i
+    u = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z], axis=1)
+    return np.unique(np.argmax(planes[:, :3] @ u.T, axis=0))
 
 
 def _inner_spheres(coarse, tol: float, fcl_obj, cells: int = 12, most: int = 48) -> np.ndarray:
@@ -1574,7 +1585,7 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     if not len(c):
         return k, c
     a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
-    separated, start_in = _hull_separated(msh.planes, a, b, rc)
+    separated, start_in = _hull_separated(msh.planes, a, b, rc, msh.few)
     c, k, a, b, rc, start_in = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
         start_in[~separated]
     # Exact early accept: a capsule that reaches a sphere inside the solid. Only capsules below a row's
@@ -1619,14 +1630,22 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     return k[hit][order], c[hit][order]
 
 
-def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray,
+def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray, few: np.ndarray | None = None,
                     chunk: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
     """Cyrus–Beck clipping of segments ``a b (3, K)`` (mesh frame) by the hull's face planes
     ``planes (F, 4)`` (``n . x <= d``) pushed out by ``rc (K,)`` m: ``separated (K,)``, the clipped
     segment is empty (the inflated capsule misses the hull), and ``start_in (K,)``, ``a`` lies inside
-    every plane. Columns in slices of about ``chunk // F``, so memory stays bounded on fine hulls."""
-    n, d = planes[:, :3], planes[:, 3]
+    every plane (given where not separated). Columns in slices of about ``chunk // F``, so memory
+    stays bounded on fine hulls. With ``few`` (plane ids), the segments are clipped by those planes
+    first: one they empty is emptied by all (fewer half-spaces hold more), and only the others meet
+    every plane (the duck's hull has 1,000 faces)."""
     K = a.shape[1]
+    if few is not None and len(few) < len(planes):
+        separated, start_in = np.ones(K, bool), np.zeros(K, bool)
+        rest = ~_hull_separated(planes[few], a, b, rc, chunk=chunk)[0]
+        separated[rest], start_in[rest] = _hull_separated(planes, a[:, rest], b[:, rest], rc[rest], chunk=chunk)
+        return separated, start_in
+    n, d = planes[:, :3], planes[:, 3]
     separated, start_in = np.zeros(K, bool), np.zeros(K, bool)
     step = max(1, chunk // max(len(planes), 1))
     for s in range(0, K, step):
