@@ -20,9 +20,9 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   LP at the largest tilt, with the friction and ball force the plan's MPC may use
   (``friction_safety`` and ``force_safety``). The arms along that motion (IK, collisions, each ball's
   tool axis turning against its contact normal by at most ``max_eef_normal_change``, §5.1's
-  ``eef_normal_angle``) are checked lazily by ``pivot plan`` on the paths it walks (LazySP, §5.3's
-  re-search), or here with ``pivot_arms``: batched IK seeded from the first node's grasp, collisions
-  at every sample. Undirected.
+  ``eef_normal_angle``: batched IK seeded from the first node's grasp, collisions at every sample)
+  are checked lazily by ``pivot plan`` on the paths it finds (LazySP, §5.3's re-search), or here with
+  ``pivot_arms``. Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between any two grasps of the pose whose balls can change their contacts one at a time, each
   move made while the other ball alone holds the object on its table edge (``hold_*``, §5.2.2;
@@ -118,9 +118,10 @@ class Params:
     max_eef_normal_change: float = np.radians(75.0)
     #: LazySP (§5.3: the motion is checked on the path the search takes, a failure re-searches): a
     #: pivot edge's arm motion (IK, collisions, ``eef_normal_angle``) is checked here only with
-    #: ``pivot_arms``; otherwise ``pivot plan`` checks it on the paths it walks, from the robot's actual
-    #: joints. Those checks took nine tenths of the stage (the duck: 22 of 25 s) and refused one edge
-    #: in fourteen. The sampler's reach (``stages.sample.lazy_reach``) checks them, once per walk.
+    #: ``pivot_arms``; otherwise ``pivot plan`` runs these same checks on the pivot edges of each path
+    #: it finds, before walking it (``stages.plan._graph_arm_checks``). They took nine tenths of the
+    #: stage (the duck: 22 of 25 s) and refuse one edge in fourteen. The sampler's reach
+    #: (``stages.sample.lazy_reach``) checks them here, once per walk.
     pivot_arms: bool = False
     #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
     #: (``stages.plan.Params``: 0.8 of the friction, each ball's whole force within 0.9 of the force

@@ -10,7 +10,7 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   moves, then the right; in USP the arms the edge names, one at a time, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
   flips), collisions along it, each ball's tool axis against its contact normal (§5.1's
-  ``eef_normal_angle``; the graph checks a pivot's statics only, ``stages.graph.Params.pivot_arms``),
+  ``eef_normal_angle``),
   where its balls roll to on the object (``stages.rolling``: summed over the pivots of one grasp,
   each contact must stay on its surface, else ``ball_rolls_off``; §5.1 checks the ball's angle to
   the surface for the same reason), and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
@@ -31,8 +31,12 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   collisions along the roll, the balls' rolling as for a pivot, and the tumbling MPC with both balls
   on throughout (:func:`_check_squeeze_step`).
 
-The first failing edge is removed (both directions for undirected ones), the removal and its reason
-are logged, and the search runs again, until a path passes or none is left. With no path (before or
+Before a path is walked, its pivot edges that no path took before get the graph stage's arm checks,
+which it defers (``stages.graph.Params.pivot_arms``; LazySP): IK from the grasp's own joints and
+collisions along the edge, batched over the path (:func:`_graph_arm_checks`); an edge they refuse is
+removed and logged with ``graph_check``, not counted as a backtrack, and the search runs again.
+The first failing edge of the walk is removed (both directions for undirected ones), the removal and
+its reason are logged, and the search runs again, until a path passes or none is left. With no path (before or
 after backtracking) the plan's ``reason`` names the cause and ``diagnosis`` counts what failed
 (``stages.diagnosis``: no grasp at the start or goal, the goal off the lattice, no tumble onto its
 face, the pivots, tumbles or regrasps that lead on rejected, and why). A check's outcome is kept
@@ -299,6 +303,33 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     if nodes["kind"][u] == "grasp":  # grasp -> grasp: the grasp itself rolls the object
         return _check_squeeze_step(ctx, params, state, data, step, gu)
     return _check_tumble_step(ctx, params, state, u, v, data, step)
+
+
+def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) -> list[tuple]:
+    """The graph stage's arm checks of a pivot edge (``stages.graph.Params.pivot_arms``: IK from its
+    grasp's joints and collisions along the edge's own direction, ``eef_normal_angle``), deferred to
+    the first path that takes the edge (LazySP) and batched over the path's pivot edges not in
+    ``done``: ``(u, v, data, reason)`` of those refused, in path order. The graph would have refused
+    them, so their removal is not backtracking; every pivot the walk then meets is checked again from
+    the robot's actual joints (:func:`_check_step`)."""
+    from stages import graph  # PivotChecks' fields are the graph stage's
+
+    arcs = [(u, v, G.edges[u, v]) for u, v in zip(path[:-1], path[1:], strict=True)]
+    arcs = [a for a in arcs if a[2]["primitive"] == "pivot" and a[2]["edge_id"] not in done]
+    if not arcs:
+        return []
+    e = np.array([a[2]["edge_id"] for a in arcs], dtype=np.int64)
+    done.update(e.tolist())
+    ga, gb = ctx.nodes["grasp_id"][ctx.edges["node_a"][e]], ctx.nodes["grasp_id"][ctx.edges["node_b"][e]]
+    poses_ab = np.stack([ctx.grasps["pose_id"][ga], ctx.grasps["pose_id"][gb]], axis=1)
+    p_g, n_g = graph.grasp_geometry(ctx.tables, ctx.grasps, ctx.scene.robot.ball_radius)
+    q_g = np.stack([ctx.q_grasp["left"], ctx.q_grasp["right"]], axis=1)
+    pc = graph.PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
+                           ctx.edges["vertex"][e], np.full((len(e), 2), -1),
+                           [set(np.asarray(v).tolist()) for v in ctx.grasps["pivot_vertices"]], p_g, n_g, q_g)
+    gp = replace(GraphParams(), pivot_arms=True, max_eef_normal_change=ctx.max_eef_normal_change)
+    status = graph.check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
+    return [(*a, str(st)) for a, st in zip(arcs, status, strict=True) if st != "ok"]
 
 
 def _rolled(ctx: _Context, params: Params, state: _State, q: np.ndarray, X: np.ndarray, p_c: np.ndarray,
@@ -668,6 +699,7 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
     home = np.zeros(ctx.robot.arm("left").dof)
     removals = 0
     checked: dict = {}  # (u, v, state) -> the check's outcome: a new path re-walks its prefix for free
+    armed: set = set()  # pivot edges through the graph's deferred arm checks
     while True:
         try:
             path = nx.shortest_path(G, start, target, weight="weight")
@@ -676,6 +708,10 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
                 target, partial = _nearest_reachable(ctx, G, start)
                 continue
             return _infeasible(ctx, params, G, start, goal, log, "no path left after backtracking")
+        if refused := _graph_arm_checks(ctx, G, path, armed):
+            for u, v, data, why in refused:
+                _remove(ctx, G, log, u, v, data, why, None, graph_check=True)
+            continue
         state = _State({"left": home.copy(), "right": home.copy()}, {"left": None, "right": None},
                        ctx.X_WO[int(ctx.nodes["pose_id"][start])])
         steps = []
@@ -719,16 +755,23 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
             if partial:
                 out["remaining_error"] = partial
             return out
-        u, v, data, why, detail = failed
-        log.append({"edge_id": data["edge_id"], "primitive": data["primitive"], "node_a": int(u), "node_b": int(v),
-                    "reason": why, **({"detail": detail} if detail else {})})
-        G.remove_edge(u, v)
-        if not ctx.edges["directed"][data["edge_id"]] and G.has_edge(v, u):
-            G.remove_edge(v, u)
+        _remove(ctx, G, log, *failed)
         removals += 1
         if removals >= params.max_removals:
             return {"status": "infeasible", "reason": f"gave up after {removals} removed edges", "steps": [],
                     "log": log}
+
+
+def _remove(ctx: _Context, G: nx.DiGraph, log: list[dict], u: int, v: int, data: dict, why: str, detail,
+            graph_check: bool = False) -> None:
+    """Remove the failed arc ``u -> v`` (both ways when undirected) and log it; ``graph_check``: it
+    failed the graph stage's deferred checks (:func:`_graph_arm_checks`), not a backtrack."""
+    log.append({"edge_id": data["edge_id"], "primitive": data["primitive"], "node_a": int(u), "node_b": int(v),
+                "reason": why, **({"detail": detail} if detail else {}),
+                **({"graph_check": True} if graph_check else {})})
+    G.remove_edge(u, v)
+    if not ctx.edges["directed"][data["edge_id"]] and G.has_edge(v, u):
+        G.remove_edge(v, u)
 
 
 def _infeasible(ctx: _Context, params: Params, G: nx.DiGraph, start: int, goal: int, log: list[dict],

@@ -453,7 +453,7 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
     usp = ps.support[pose_id] == "USP"
     g = ps.placement[pose_id]
     placed = np.unique(ps.placement[pose_id]).tolist()  # the placements of these poses only
-    kmax = max([len(corners[gi]) for gi in placed], default=0)
+    kmax = max([1, *(len(corners[gi]) for gi in placed)])  # one padded column at least
     cid = -np.ones((len(corners), kmax), np.int64)  # padded corner ids per placement, sorted
     for gi in placed:
         cid[gi, :len(corners[gi])] = corners[gi]

@@ -314,8 +314,9 @@ def test_eef_normal_angle_change_is_the_turn_of_the_tool_against_the_normal():
 
 def test_pivot_edges_whose_balls_turn_too_far_against_the_normal_are_refused(small_build, tmp_path):
     """With the arms checked in the graph (``pivot_arms``) and a 5 deg bound on the change of the
-    ball-normal angle, pivot edges whose motion the default bound passes are refused with the reason code ``eef_normal_angle``; the others keep their verdict (but
-    squeeze tumbles, which the same bound refuses)."""
+    ball-normal angle, pivot edges whose motion the default bound passes are refused with the reason
+    code ``eef_normal_angle``; the others keep their verdict (but squeeze tumbles, which the same
+    bound refuses)."""
     from dataclasses import replace
 
     from stages import artifacts
@@ -357,21 +358,30 @@ def test_the_graph_leaves_a_pivots_arm_motion_to_the_plan(small_build, tmp_path)
     assert (lazy["status"][~armed] == full["status"][~armed]).all()
 
 
-def test_the_plan_refuses_a_pivot_whose_balls_turn_too_far_against_the_normal(small_build, tmp_path):
-    """The plan checks §5.1's ``eef_normal_angle`` on the pivots it walks, with the graph's bound: at
-    5 deg it removes pivot edges for it (the graph, not checking a pivot's arms, kept them)."""
+def test_the_plan_refuses_a_pivot_whose_balls_turn_too_far_against_the_normal(small_build, tmp_path, monkeypatch):
+    """At a 5 deg bound on §5.1's ``eef_normal_angle`` the graph (not checking a pivot's arms) keeps
+    the pivot edges it would refuse; the plan refuses them with the graph's own arm checks on each
+    path it finds (``_graph_arm_checks``, logged ``graph_check``, not backtracks), for the reason the
+    arm-checked graph gives; and, without those, its walk refuses them from the robot's actual joints."""
     from dataclasses import replace
 
     from stages import artifacts, plan
 
     scene, b = small_build
-    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph",
-              replace(graph.Params(), max_eef_normal_change=np.radians(5.0)))
+    strict = replace(graph.Params(), max_eef_normal_change=np.radians(5.0))
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "graph", strict)
+    graph.run(scene, b / "analysis", b / "sample", tmp_path / "armed", replace(strict, pivot_arms=True))
     edges = artifacts.read_table(tmp_path / "graph" / "edges.parquet", "edges")
+    armed = artifacts.read_table(tmp_path / "armed" / "edges.parquet", "edges")
     assert "eef_normal_angle" not in edges["status"][edges["primitive"] == "pivot"]
-    out = plan.run(scene, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json",
-                   replace(plan.Params(), check_mpc=False, max_removals=20))
-    assert any(e.get("reason") == "eef_normal_angle" for e in out["log"])
+    prm = replace(plan.Params(), check_mpc=False, max_removals=20)
+    out = plan.run(scene, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json", prm)
+    deferred = [e for e in out["log"] if e.get("graph_check")]
+    assert any(e["reason"] == "eef_normal_angle" for e in deferred)
+    assert all(e["reason"] == armed["status"][e["edge_id"]] != "ok" for e in deferred)
+    monkeypatch.setattr(plan, "_graph_arm_checks", lambda *args: [])
+    out = plan.run(scene, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json", prm)
+    assert any(e["reason"] == "eef_normal_angle" and not e.get("graph_check") for e in out["log"])
 
 
 def _pivot_past_the_wrist():
