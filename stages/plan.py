@@ -10,12 +10,12 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   moves, then the right; in USP the arms the edge names, one at a time, while the other holds.
 - **pivot**: IK along the tilt → rotate → lower motion from the *actual* configuration (no branch
   flips), collisions along it, each ball's tool axis against its contact normal (§5.1's
-  ``eef_normal_angle``),
-  where its balls roll to on the object (``stages.rolling``: summed over the pivots of one grasp,
-  each contact must stay on its surface, else ``ball_rolls_off``; §5.1 checks the ball's angle to
-  the surface for the same reason), and the MPC of §5.2 (``stages.mpc.run_pivot_mpc``) with the
-  friction and force constraints; ``mpc_infeasible`` is a failure like any other, and so is
-  ``mpc_marginal`` (feasible only near the force bound or with a large tracking error).
+  ``eef_normal_angle``), where its balls roll to on the object (``stages.rolling``: summed over the
+  pivots of one grasp, each contact must stay on its surface, else ``ball_rolls_off``; §5.1 checks
+  the ball's angle to the surface for the same reason), and the MPC of §5.2
+  (``stages.mpc.run_pivot_mpc``) with the friction and force constraints; ``mpc_infeasible`` is a
+  failure like any other, and so is ``mpc_marginal`` (feasible only near the force bound or with a
+  large tracking error).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
   posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
@@ -36,10 +36,11 @@ which it defers (``stages.graph.Params.pivot_arms``; LazySP): IK from the grasp'
 collisions along the edge, batched over the path (:func:`_graph_arm_checks`); an edge they refuse is
 removed and logged with ``graph_check``, not counted as a backtrack, and the search runs again.
 The first failing edge of the walk is removed (both directions for undirected ones), the removal and
-its reason are logged, and the search runs again, until a path passes or none is left. With no path (before or
-after backtracking) the plan's ``reason`` names the cause and ``diagnosis`` counts what failed
-(``stages.diagnosis``: no grasp at the start or goal, the goal off the lattice, no tumble onto its
-face, the pivots, tumbles or regrasps that lead on rejected, and why). A check's outcome is kept
+its reason are logged, and the search runs again (backtracking, :func:`backtracks`), until a path
+passes or none is left. With no path (before or after backtracking) the plan's ``reason`` names the
+cause and ``diagnosis`` counts what failed (``stages.diagnosis``: no grasp at the start or goal, the
+goal off the lattice, no tumble onto its face, the pivots, tumbles or regrasps that lead on
+rejected, and why). A check's outcome is kept
 by edge and exact robot state, so the next path re-walks the prefix it shares with the last one
 without re-planning it (the result is the same, bit for bit). A pivot's MPC check depends on its edge
 alone, not on the robot's state (nor does the state after the pivot depend on it), so its outcome is
@@ -168,6 +169,18 @@ class _Context:
                        "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet",
                        **provenance.analysis_inputs(analysis_dir)}
         self._tumble_env = None
+        self._pivot_checks = None
+
+    def pivot_checks(self):
+        """The grasps' contact points and normals ``(G, 2, 3)`` (O), joints ``(G, 2, n)`` and
+        ``pivot_vertices`` sets, for the graph's deferred checks (:func:`_graph_arm_checks`), made once."""
+        from stages import graph  # PivotChecks' fields are the graph stage's
+
+        if self._pivot_checks is None:
+            p_g, n_g = graph.grasp_geometry(self.tables, self.grasps, self.scene.robot.ball_radius)
+            q_g = np.stack([self.q_grasp["left"], self.q_grasp["right"]], axis=1)
+            self._pivot_checks = (p_g, n_g, q_g, [set(np.asarray(v).tolist()) for v in self.grasps["pivot_vertices"]])
+        return self._pivot_checks
 
     def contact(self, grasp: int, arm: str) -> int:
         return int(self.grasps["contact_left" if arm == "left" else "contact_right"][grasp])
@@ -322,11 +335,9 @@ def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) 
     done.update(e.tolist())
     ga, gb = ctx.nodes["grasp_id"][ctx.edges["node_a"][e]], ctx.nodes["grasp_id"][ctx.edges["node_b"][e]]
     poses_ab = np.stack([ctx.grasps["pose_id"][ga], ctx.grasps["pose_id"][gb]], axis=1)
-    p_g, n_g = graph.grasp_geometry(ctx.tables, ctx.grasps, ctx.scene.robot.ball_radius)
-    q_g = np.stack([ctx.q_grasp["left"], ctx.q_grasp["right"]], axis=1)
+    p_g, n_g, q_g, pivot_sets = ctx.pivot_checks()
     pc = graph.PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
-                           ctx.edges["vertex"][e], np.full((len(e), 2), -1),
-                           [set(np.asarray(v).tolist()) for v in ctx.grasps["pivot_vertices"]], p_g, n_g, q_g)
+                           ctx.edges["vertex"][e], np.full((len(e), 2), -1), pivot_sets, p_g, n_g, q_g)
     gp = replace(GraphParams(), pivot_arms=True, max_eef_normal_change=ctx.max_eef_normal_change)
     status = graph.check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
     return [(*a, str(st)) for a, st in zip(arcs, status, strict=True) if st != "ok"]
@@ -760,6 +771,11 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
         if removals >= params.max_removals:
             return {"status": "infeasible", "reason": f"gave up after {removals} removed edges", "steps": [],
                     "log": log}
+
+
+def backtracks(plan: dict) -> int:
+    """Edges the plan's walk removed (backtracking, §5.3): its log less the graph's deferred refusals."""
+    return sum(not e.get("graph_check") for e in plan.get("log", []))
 
 
 def _remove(ctx: _Context, G: nx.DiGraph, log: list[dict], u: int, v: int, data: dict, why: str, detail,

@@ -55,7 +55,7 @@ def log_plan(plan: Mapping) -> None:
     """The plan's status, cost and counts; each edge backtracking removed and each step, with reasons."""
     log = logging.getLogger("stages.plan")
     log.info("plan: %s, cost %s, %s; %d edges removed by backtracking", plan["status"], plan.get("cost"),
-             _counts(plan.get("counts", {})), len(plan.get("log", [])))
+             _counts(plan.get("counts", {})), sum(not e.get("graph_check") for e in plan.get("log", [])))
     if plan["status"] == "infeasible":
         log.info("plan: infeasible: %s", plan.get("reason"))
     for e in plan.get("log", []):

@@ -203,7 +203,8 @@ def plan_counts(b: Path) -> dict:
     c = plan.get("counts", {})
     return {"plan_found": plan.get("status") == "ok", "pivots": int(c.get("pivot", 0)),
             "tumbles": int(c.get("tumble", 0)), "regrasps": int(c.get("regrasp", 0)),
-            "usp_regrasps": int(c.get("usp_regrasp", 0)), "backtracks": len(plan.get("log", []))}
+            "usp_regrasps": int(c.get("usp_regrasp", 0)),
+            "backtracks": sum(not e.get("graph_check") for e in plan.get("log", []))}  # plan.backtracks
 
 
 def run_chain(case: dict, out: Path, seeds: int, timeout: float) -> list[dict]:
