@@ -16,9 +16,8 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
 - **pivot** (weight ``w_pivot``): two grasp nodes with the same contacts on two poses linked by a
   pivot about vertex v (§5.2.1), with the object in equilibrium on v with the two balls at the start
   of the tilt and at the largest tilt of the tilt → rotate → lower motion (``stages.mpc.
-  pivot_reference``): v among both grasps' ``pivot_vertices`` (``stages.sample``), then the stability
-  LP at the largest tilt, with the friction and ball force the plan's MPC may use
-  (``friction_safety`` and ``force_safety``). The arms along that motion (IK, collisions, each ball's
+  pivot_reference``): v among both grasps' ``pivot_vertices`` (``stages.sample``: the stability LP,
+  with the friction and ball force the plan's MPC may use). The arms along that motion (IK, collisions, each ball's
   tool axis turning against its contact normal by at most ``max_eef_normal_change``, §5.1's
   ``eef_normal_angle``: batched IK seeded from the first node's grasp, collisions at every sample)
   are checked lazily by ``pivot plan`` on the paths it finds (LazySP, §5.3's re-search), or here with
@@ -123,10 +122,11 @@ class Params:
     #: stage (the duck: 22 of 25 s) and refuse one edge in fourteen. The sampler's reach
     #: (``stages.sample.lazy_reach``) checks them here, once per walk.
     pivot_arms: bool = False
-    #: The pivot equilibrium is checked with the friction and ball force the planner's MPC may use
-    #: (``stages.plan.Params``: 0.8 of the friction, each ball's whole force within 0.9 of the force
-    #: bound, ``stability.normal_bound``), so that the search does not find pivots its MPC check then
-    #: refuses.
+    #: The friction and ball force the planner's MPC may use (``stages.plan.Params``: 0.8 of the
+    #: friction, each ball's whole force within 0.9 of the force bound, ``stability.normal_bound``), so
+    #: that the search does not find motions its MPC check then refuses: a pusher's (:func:`push_limits`)
+    #: and a squeeze's force. A pivot's equilibrium is the sampler's ``pivot_vertices`` test, with the
+    #: same fractions (``stages.sample.Params.pivot_*_safety``).
     friction_safety: float = 0.8
     force_safety: float = 0.9
     #: Worker threads of the collision checks, each taking a slice of the configurations (numpy
@@ -258,8 +258,9 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
     """Status of pivot edge candidates ``cand (n, 3)`` (grasp at a, grasp at b, link), ``(n,)``:
     ``unstable`` when either grasp does not list the link's vertex among its ``pivot_vertices``,
     ``not_a_pivot``, then with ``params.pivot_arms`` the arms along the tilt -> rotate -> lower
-    reference (:func:`_pivot_arms`), then equilibrium on the vertex at the largest tilt with both balls
-    (:func:`_tilt_holds`)."""
+    reference (:func:`_pivot_arms`). The equilibrium on the vertex at the start of the tilt and at
+    its largest is the sampler's ``pivot_vertices`` test (the stability LP, eq. 1-4, with the plan
+    MPC's friction and force, ``stages.sample.Params.pivot_friction_safety`` and ``_force_safety``)."""
     status = np.full(len(cand), "ok", dtype=object)
     scene, model, X_WO = pc.scene, pc.model, pc.X_WO
     v = pc.link_vertex[cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
@@ -285,13 +286,8 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
     if len(live):
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])
-        ok = np.ones(len(live), bool)
         if params.pivot_arms:
-            ok, status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)
-        # Equilibrium on the vertex at the largest tilt (middle of the path) with both balls.
-        live2 = live[ok]
-        if len(live2):
-            status[live2[~_tilt_holds(pc, X_traj[ok][:, T // 2], cand[live2, 0], v[live2], params)]] = "unstable"
+            status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)[1]
     return status
 
 
@@ -307,23 +303,6 @@ def _pivot_arms(pc: PivotChecks, g: np.ndarray, X_traj: np.ndarray, params: Para
         turned = ok[c] & (eef_normal_angle_change(pc.robot, q_c, X_traj[c], pc.n_g[gc]) > params.max_eef_normal_change)
         why[c][turned], ok[c][turned] = "eef_normal_angle", False
     return ok, why
-
-
-def _tilt_holds(pc: PivotChecks, Xm: np.ndarray, g: np.ndarray, v: np.ndarray, params: Params) -> np.ndarray:
-    """Whether grasps ``g (E,)`` hold the object on vertices ``v (E,)`` at poses ``Xm (E, 4, 4)`` (W):
-    the stability LP (eq. 1-4) with ``friction_safety`` and ``force_safety``, ``(E,)``."""
-    scene, model = pc.scene, pc.model
-    pts = np.einsum("eij,ekj->eki", Xm[:, :3, :3], pc.p_g[g]) + Xm[:, None, :3, 3]
-    nrm = -np.einsum("eij,ekj->eki", Xm[:, :3, :3], pc.n_g[g])
-    p0 = np.einsum("eij,ej->ei", Xm[:, :3, :3], model.vertices[v]) + Xm[:, :3, 3]
-    mu = params.friction_safety * scene.object.friction
-    res = stability.evaluate(scene.object.mass, se3.transform_points(Xm, model.com), p0[:, None], None,
-                             pts, nrm, None, float(np.linalg.norm(pc.tables["summary"]["extents"]) / 2),
-                             stability.Params(mu_eef=mu, mu_table=params.friction_safety * scene.table.friction,
-                                              f_max=stability.normal_bound(
-                                                  params.force_safety * scene.robot.max_eef_force, mu)),
-                             compute_margin=False)
-    return res.stable
 
 
 def squeeze_candidates(links, support: np.ndarray, by_pose: dict) -> np.ndarray:
