@@ -43,6 +43,7 @@ def plan(
 ) -> None:
     """Search the graph, check each primitive at the motion level and backtrack (§5.3) -> plan.json."""
     from stages import plan as plan_stage
+    from stages import stagelog
 
     lay = Layout.of(scene, build, variant_of(no_regrasp, no_tumble, no_usp))
     out = out or lay.plan
@@ -56,7 +57,7 @@ def plan(
         raise typer.Exit(code=1)
     c = p["counts"]
     msg = (f"{scene.stem}: {p['status']} plan, cost {p['cost']:.2f}: {c['pivot']} pivots, {c['tumble']} tumbles, "
-           f"{c['regrasp']} regrasps ({c.get('usp_regrasp', 0)} in USP); {plan_stage.backtracks(p)} edges removed "
+           f"{c['regrasp']} regrasps ({c.get('usp_regrasp', 0)} in USP); {stagelog.backtracks(p)} edges removed "
            f"by backtracking; {p['time']:.2f} s -> {out}")
     if p["status"] == "partial":
         err = p["remaining_error"]

@@ -17,11 +17,11 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
   pivot about vertex v (§5.2.1), with the object in equilibrium on v with the two balls at the start
   of the tilt and at the largest tilt of the tilt → rotate → lower motion (``stages.mpc.
   pivot_reference``): v among both grasps' ``pivot_vertices`` (``stages.sample``: the stability LP,
-  with the friction and ball force the plan's MPC may use). The arms along that motion (IK, collisions, each ball's
-  tool axis turning against its contact normal by at most ``max_eef_normal_change``, §5.1's
-  ``eef_normal_angle``: batched IK seeded from the first node's grasp, collisions at every sample)
-  are checked lazily by ``pivot plan`` on the paths it finds (LazySP, §5.3's re-search), or here with
-  ``pivot_arms``. Undirected.
+  with the friction and ball force the plan's MPC may use). The arms along that motion (IK,
+  collisions, each ball's tool axis turning against its contact normal by at most
+  ``max_eef_normal_change``, §5.1's ``eef_normal_angle``: batched IK seeded from the first node's
+  grasp, collisions at every sample) are checked lazily by ``pivot plan`` on the paths it finds
+  (LazySP, §5.3's re-search), or here with ``pivot_arms``. Undirected.
 - **regrasp** (weight ``w_regrasp``): in SP grasp node ↔ free node (half the weight each way); in USP
   between any two grasps of the pose whose balls can change their contacts one at a time, each
   move made while the other ball alone holds the object on its table edge (``hold_*``, §5.2.2;
@@ -287,22 +287,22 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
         T = min(len(x) for x in trajs)
         X_traj = np.stack([x[:T] for x in trajs])
         if params.pivot_arms:
-            status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)[1]
+            status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)
     return status
 
 
-def _pivot_arms(pc: PivotChecks, g: np.ndarray, X_traj: np.ndarray, params: Params):
+def _pivot_arms(pc: PivotChecks, g: np.ndarray, X_traj: np.ndarray, params: Params) -> np.ndarray:
     """The arms along pivot references ``X_traj (E, T, 4, 4)`` with grasps ``g (E,)`` from their own
-    joints: :func:`check_arm_motion` and §5.1's ``eef_normal_angle``; ``ok (E,)``, reason ``(E,)``."""
-    ok, why = np.zeros(len(g), bool), np.empty(len(g), dtype=object)
+    joints: :func:`check_arm_motion` and §5.1's ``eef_normal_angle``; status ``(E,)`` (``ok`` or why)."""
+    why = np.empty(len(g), dtype=object)
     r = pc.scene.robot.ball_radius
     for s in range(0, len(g), params.pivot_chunk):  # fixed-size chunks bound the checker's memory
         c, gc = slice(s, s + params.pivot_chunk), g[s:s + params.pivot_chunk]
-        ok[c], why[c], q_c = check_arm_motion(pc.robot, pc.collide, X_traj[c], pc.p_g[gc], pc.n_g[gc], pc.q_g[gc],
-                                              r, params)
-        turned = ok[c] & (eef_normal_angle_change(pc.robot, q_c, X_traj[c], pc.n_g[gc]) > params.max_eef_normal_change)
-        why[c][turned], ok[c][turned] = "eef_normal_angle", False
-    return ok, why
+        ok, why[c], q_c = check_arm_motion(pc.robot, pc.collide, X_traj[c], pc.p_g[gc], pc.n_g[gc], pc.q_g[gc],
+                                           r, params)
+        turned = ok & (eef_normal_angle_change(pc.robot, q_c, X_traj[c], pc.n_g[gc]) > params.max_eef_normal_change)
+        why[c][turned] = "eef_normal_angle"
+    return why
 
 
 def squeeze_candidates(links, support: np.ndarray, by_pose: dict) -> np.ndarray:

@@ -36,7 +36,7 @@ which it defers (``stages.graph.Params.pivot_arms``; LazySP): IK from the grasp'
 collisions along the edge, batched over the path (:func:`_graph_arm_checks`); an edge they refuse is
 removed and logged with ``graph_check``, not counted as a backtrack, and the search runs again.
 The first failing edge of the walk is removed (both directions for undirected ones), the removal and
-its reason are logged, and the search runs again (backtracking, :func:`backtracks`), until a path
+its reason are logged, and the search runs again (backtracking, ``stages.stagelog.backtracks``), until a path
 passes or none is left. With no path (before or after backtracking) the plan's ``reason`` names the
 cause and ``diagnosis`` counts what failed (``stages.diagnosis``: no grasp at the start or goal, the
 goal off the lattice, no tumble onto its face, the pivots, tumbles or regrasps that lead on
@@ -66,7 +66,16 @@ import numpy as np
 
 from stages import artifacts, diagnosis, mpc, poses, provenance, se3, squeeze, stagelog, transit
 from stages.graph import Params as GraphParams
-from stages.graph import check_arm_motion, eef_normal_angle_change, push_limits, pusher_motion, release_angle
+from stages.graph import (
+    PivotChecks,
+    check_arm_motion,
+    check_pivot_edges,
+    eef_normal_angle_change,
+    grasp_geometry,
+    push_limits,
+    pusher_motion,
+    release_angle,
+)
 from stages.objectmodel import load_object_model
 from stages.robot import load_robot
 from stages.rolling import RollLimits, rolled_off, rolling_shift
@@ -174,10 +183,8 @@ class _Context:
     def pivot_checks(self):
         """The grasps' contact points and normals ``(G, 2, 3)`` (O), joints ``(G, 2, n)`` and
         ``pivot_vertices`` sets, for the graph's deferred checks (:func:`_graph_arm_checks`), made once."""
-        from stages import graph  # PivotChecks' fields are the graph stage's
-
         if self._pivot_checks is None:
-            p_g, n_g = graph.grasp_geometry(self.tables, self.grasps, self.scene.robot.ball_radius)
+            p_g, n_g = grasp_geometry(self.tables, self.grasps, self.scene.robot.ball_radius)
             q_g = np.stack([self.q_grasp["left"], self.q_grasp["right"]], axis=1)
             self._pivot_checks = (p_g, n_g, q_g, [set(np.asarray(v).tolist()) for v in self.grasps["pivot_vertices"]])
         return self._pivot_checks
@@ -325,8 +332,6 @@ def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) 
     ``done``: ``(u, v, data, reason)`` of those refused, in path order. The graph would have refused
     them, so their removal is not backtracking; every pivot the walk then meets is checked again from
     the robot's actual joints (:func:`_check_step`)."""
-    from stages import graph  # PivotChecks' fields are the graph stage's
-
     arcs = [(u, v, G.edges[u, v]) for u, v in zip(path[:-1], path[1:], strict=True)]
     arcs = [a for a in arcs if a[2]["primitive"] == "pivot" and a[2]["edge_id"] not in done]
     if not arcs:
@@ -336,10 +341,10 @@ def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) 
     ga, gb = ctx.nodes["grasp_id"][ctx.edges["node_a"][e]], ctx.nodes["grasp_id"][ctx.edges["node_b"][e]]
     poses_ab = np.stack([ctx.grasps["pose_id"][ga], ctx.grasps["pose_id"][gb]], axis=1)
     p_g, n_g, q_g, pivot_sets = ctx.pivot_checks()
-    pc = graph.PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
+    pc = PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
                            ctx.edges["vertex"][e], np.full((len(e), 2), -1), pivot_sets, p_g, n_g, q_g)
     gp = replace(GraphParams(), pivot_arms=True, max_eef_normal_change=ctx.max_eef_normal_change)
-    status = graph.check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
+    status = check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
     return [(*a, str(st)) for a, st in zip(arcs, status, strict=True) if st != "ok"]
 
 
@@ -771,11 +776,6 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
         if removals >= params.max_removals:
             return {"status": "infeasible", "reason": f"gave up after {removals} removed edges", "steps": [],
                     "log": log}
-
-
-def backtracks(plan: dict) -> int:
-    """Edges the plan's walk removed (backtracking, §5.3): its log less the graph's deferred refusals."""
-    return sum(not e.get("graph_check") for e in plan.get("log", []))
 
 
 def _remove(ctx: _Context, G: nx.DiGraph, log: list[dict], u: int, v: int, data: dict, why: str, detail,

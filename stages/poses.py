@@ -243,6 +243,15 @@ class PivotCorners:
             self._found[g] = _placement_corners(self.model, g, self.cluster, self.tilt)
         return self._found[g]
 
+    def table(self, placements) -> np.ndarray:
+        """``(G, k)`` corner ids per placement, sorted and padded with -1, filled for ``placements``
+        only (the others all -1); ``k`` their most corners, at least 1."""
+        placed = np.unique(np.asarray(placements, dtype=np.int64)).tolist()
+        out = -np.ones((len(self), max([1, *(len(self[g]) for g in placed)])), np.int64)
+        for g in placed:
+            out[g, :len(self[g])] = self[g]
+        return out
+
     def holding(self, g: int, ids: np.ndarray) -> PivotCorners:
         """These corners with placement ``g``'s replaced by ``ids``."""
         out = PivotCorners(self.model, self.cluster, self.tilt)

@@ -452,11 +452,8 @@ def _stability(scene, model, tables, ps, pose_id, pair_id, X, p_l, p_r, n_l, n_r
            "margin": np.zeros(N)}
     usp = ps.support[pose_id] == "USP"
     g = ps.placement[pose_id]
-    placed = np.unique(ps.placement[pose_id]).tolist()  # the placements of these poses only
-    kmax = max([1, *(len(corners[gi]) for gi in placed)])  # one padded column at least
-    cid = -np.ones((len(corners), kmax), np.int64)  # padded corner ids per placement, sorted
-    for gi in placed:
-        cid[gi, :len(corners[gi])] = corners[gi]
+    cid = corners.table(g)  # padded corner ids per placement, sorted (those of these poses only)
+    kmax = cid.shape[1]
     ids = cid[g]                                                                   # (N, kmax)
     V = se3.transform_points(X[:, None], model.vertices[np.maximum(ids, 0)])
     on = (ids >= 0) & np.all(np.abs(V[..., :2]) <= half, axis=2)                 # corner on the table

@@ -51,11 +51,17 @@ def log_graph(summary: Mapping, edges: Mapping[str, np.ndarray]) -> None:
                       edges["node_a"][i], edges["node_b"][i], edges["status"][i])
 
 
+def backtracks(plan: Mapping) -> int:
+    """Edges the plan's walk removed (backtracking, §5.3): its log less the graph stage's deferred
+    refusals (``graph_check``, ``stages.plan._graph_arm_checks``)."""
+    return sum(not e.get("graph_check") for e in plan.get("log", []))
+
+
 def log_plan(plan: Mapping) -> None:
     """The plan's status, cost and counts; each edge backtracking removed and each step, with reasons."""
     log = logging.getLogger("stages.plan")
     log.info("plan: %s, cost %s, %s; %d edges removed by backtracking", plan["status"], plan.get("cost"),
-             _counts(plan.get("counts", {})), sum(not e.get("graph_check") for e in plan.get("log", [])))
+             _counts(plan.get("counts", {})), backtracks(plan))
     if plan["status"] == "infeasible":
         log.info("plan: infeasible: %s", plan.get("reason"))
     for e in plan.get("log", []):

@@ -365,7 +365,7 @@ def test_the_plan_refuses_a_pivot_whose_balls_turn_too_far_against_the_normal(sm
     arm-checked graph gives; and, without those, its walk refuses them from the robot's actual joints."""
     from dataclasses import replace
 
-    from stages import artifacts, plan
+    from stages import artifacts, plan, stagelog
 
     scene, b = small_build
     strict = replace(graph.Params(), max_eef_normal_change=np.radians(5.0))
@@ -379,7 +379,7 @@ def test_the_plan_refuses_a_pivot_whose_balls_turn_too_far_against_the_normal(sm
     deferred = [e for e in out["log"] if e.get("graph_check")]
     assert any(e["reason"] == "eef_normal_angle" for e in deferred)
     assert all(e["reason"] == armed["status"][e["edge_id"]] != "ok" for e in deferred)
-    assert plan.backtracks(out) == len(out["log"]) - len(deferred)
+    assert stagelog.backtracks(out) == len(out["log"]) - len(deferred)
     monkeypatch.setattr(plan, "_graph_arm_checks", lambda *args: [])
     out = plan.run(scene, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json", prm)
     assert any(e["reason"] == "eef_normal_angle" and not e.get("graph_check") for e in out["log"])

@@ -479,6 +479,9 @@ def test_pivot_corners_are_found_per_placement_on_first_use():
     held = corners.holding(g, corners[g][:1])
     assert held[g].tolist() == corners[g][:1].tolist() and len(corners[g]) == 4
     assert held[other].tolist() == corners[other].tolist() and other in corners._found  # found once, shared
+    table = corners.table([g, g])
+    assert table.shape == (6, 4) and table[g].tolist() == corners[g].tolist()
+    assert (np.delete(table, g, axis=0) == -1).all()  # only the placements asked for
 
 
 def test_a_wide_corner_tilts_off_the_coms_direction_so_that_no_neighbour_sinks():

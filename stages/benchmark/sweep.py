@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import __version__, artifacts
+from stages import __version__, artifacts, stagelog
 from stages.artifacts import Field
 
 log = logging.getLogger("pivot.benchmark")
@@ -204,7 +204,7 @@ def plan_counts(b: Path) -> dict:
     return {"plan_found": plan.get("status") == "ok", "pivots": int(c.get("pivot", 0)),
             "tumbles": int(c.get("tumble", 0)), "regrasps": int(c.get("regrasp", 0)),
             "usp_regrasps": int(c.get("usp_regrasp", 0)),
-            "backtracks": sum(not e.get("graph_check") for e in plan.get("log", []))}  # plan.backtracks
+            "backtracks": stagelog.backtracks(plan)}
 
 
 def run_chain(case: dict, out: Path, seeds: int, timeout: float) -> list[dict]:
