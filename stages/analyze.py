@@ -603,13 +603,19 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
     facet_groups = [(rows, np.sort(np.concatenate([flat_by_facet[g] for g in flat_by_facet if opposite[f, g]]
                                                   + [ids[:0]])))
                     for f, rows in flat_by_facet.items()]
-    cone_groups = [(ids[curved], ids), (ids[~curved], ids[curved])]
+    # Cone pairs: a curved contact with any other; two flat ones across facets whose normals are
+    # opposite within the cone (a squeeze line slanted across a block, not only straight through).
+    slanted = FN @ FN.T < -np.cos(np.radians(params.cone_angle_deg))
+    cone_groups = [(ids[curved], ids), (ids[~curved], ids[curved])] + [
+        (rows, np.sort(np.concatenate([flat_by_facet[g] for g in flat_by_facet if slanted[f, g]] + [ids[:0]])))
+        for f, rows in flat_by_facet.items()]
 
     inside = make_segments_inside_fn(mesh)
     width = 2 * params.ball_radius
     facet_ab = _antipodal_pairs(P, N, facet_groups, np.cos(np.radians(params.pair_angle_deg)), width, True)
     facet_ab = facet_ab[inside(P[facet_ab[:, 0]], P[facet_ab[:, 1]])]
     cone_ab = _antipodal_pairs(P, N, cone_groups, np.cos(np.radians(params.cone_angle_deg)), width, False)
+    cone_ab = cone_ab[~_rows_in(cone_ab, facet_ab)]
     keep = _spread_pairs(P[cone_ab[:, 0]], P[cone_ab[:, 1]], _squeeze_angle(P, N, cone_ab),
                          max(params.max_pairs - len(facet_ab), 0), inside)
     ab = np.concatenate([facet_ab, cone_ab[keep]])
@@ -661,6 +667,14 @@ def _antipodal_pairs(P: np.ndarray, N: np.ndarray, groups, cos_t: float, min_wid
             found.append(np.stack([a[i], cols[j]], axis=1))
     ab = np.sort(np.concatenate(found), axis=1)
     return np.unique(ab, axis=0) if len(ab) else ab
+
+
+def _rows_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(len(a),)`` whether each row of the sorted pairs ``a (K, 2)`` is a row of ``b (M, 2)``."""
+    if not len(a) or not len(b):
+        return np.zeros(len(a), dtype=bool)
+    n = int(max(a.max(), b.max())) + 1
+    return np.isin(a[:, 0] * n + a[:, 1], b[:, 0] * n + b[:, 1])
 
 
 def _squeeze_angle(P: np.ndarray, N: np.ndarray, ab: np.ndarray) -> np.ndarray:
