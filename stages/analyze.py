@@ -23,9 +23,11 @@ Works on one watertight triangle mesh in its own frame ``O`` (metres). Outputs, 
 - **pairs** (§4.2): an antipodal squeeze, the line between two contacts inside the friction cone at
   both, the segment between them inside the object. Two contacts on flat facets pair when the
   facets' normals are opposite within ``pair_angle_deg`` (the paper's rule; each keeps its best
-  partner); a pair with a curved contact is judged by the contacts' own normals and the cone of
-  ``cone_angle_deg`` (Nguyen's antipodal condition), the candidates spread over the object by
-  farthest-point sampling up to ``max_pairs``. Pairs are unordered.
+  partner); a pair with a curved contact, or two flat ones that rule did not pair (a slanted
+  squeeze across a block, our addition: its couple helps lift a pivot's far side), is judged by the
+  contacts' own normals and the cone of ``cone_angle_deg`` (Nguyen's antipodal condition), the
+  candidates spread over the object by farthest-point sampling up to ``max_pairs``. Pairs are
+  unordered.
 """
 
 from __future__ import annotations
@@ -584,11 +586,16 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
     each contact keeps its best partner, as before. **Cone pairs**: any two contacts of which at least
     one is curved (``facet_id = -1``), judged by their own normals alone with the cone of
     ``cone_angle_deg``; every pair that passes is a candidate, and they fill what ``max_pairs`` leaves
-    after the facet pairs, spread over the object (``_spread_pairs``).
+    after the facet pairs, spread over the object (``_spread_pairs``). Two flat contacts on facets
+    whose normals are opposite within the cone are cone pairs too when the rule above did not pair
+    them (**slanted pairs**): a squeeze line across a block at an angle, one ball higher than the
+    other, whose couple helps lift the far side in a pivot (§5.2.1), where a straight one needs the
+    friction alone to hold the object up.
 
     Returns columns ``pair_id, contact_a, contact_b, facet_a, facet_b`` (-1: curved), ``width`` (m),
     ``angle`` (rad, the larger angle between the line and an inward normal: the cone's half-angle
-    minus it is the margin), ``mx my mz`` (midpoint, frame O); facet pairs first, each rule's by (a, b).
+    minus it is the margin), ``mx my mz`` (midpoint, frame O); facet pairs first, each rule's by (a, b);
+    and ``_facet_pairs``, how many the facet rule made (for the summary, not a column).
     """
     P = np.stack([contacts["px"], contacts["py"], contacts["pz"]], axis=1)
     N = np.stack([contacts["nx"], contacts["ny"], contacts["nz"]], axis=1)
@@ -630,6 +637,7 @@ def find_contact_pairs(mesh: trimesh.Trimesh, segments: dict, contacts: dict, pa
         "width": np.linalg.norm(pb - pa, axis=1),
         "angle": _squeeze_angle(P, N, ab),
         "mx": mid[:, 0], "my": mid[:, 1], "mz": mid[:, 2],
+        "_facet_pairs": len(facet_ab),
     }
 
 
@@ -773,6 +781,7 @@ def compute(mesh: trimesh.Trimesh, mass: float, params: Params) -> Analysis:
     stats = contacts.pop("_stats")
     t3 = time.perf_counter()
     pairs = find_contact_pairs(mesh, segments, contacts, params)
+    n_facet = pairs.pop("_facet_pairs")
     contacts, pairs, stats["curved_unpaired"] = drop_unpaired_curved_contacts(contacts, pairs)
     t4 = time.perf_counter()
     timings.update(hull=t1 - t0, segments=t2 - t1, sampling=t3 - t2, pairs=t4 - t3, total=t4 - t0)
@@ -795,6 +804,7 @@ def compute(mesh: trimesh.Trimesh, mass: float, params: Params) -> Analysis:
             "curved_contacts": int((contacts["facet_id"] < 0).sum()),
             "pairs": int(len(pairs["pair_id"])),
             "cone_pairs": int(((pairs["facet_a"] < 0) | (pairs["facet_b"] < 0)).sum()),
+            "slanted_pairs": int(((pairs["facet_a"] >= 0) & (pairs["facet_b"] >= 0)).sum()) - n_facet,
         },
         "filtered": {k: v for k, v in stats.items() if k != "samples"},
     }

@@ -7,7 +7,7 @@ import pybullet_data
 import pytest
 import trimesh
 
-from stages import analyze, se3
+from stages import analyze, se3, stability
 from stages.errors import InputError
 from tests.conftest import PIANO, l_prism
 
@@ -39,7 +39,35 @@ def test_box_contact_pairs_lie_exactly_on_its_three_pairs_of_opposite_faces():
     p = np.stack([r.contacts["px"], r.contacts["py"], r.contacts["pz"]], 1)
     d = p[r.pairs["contact_b"]] - p[r.pairs["contact_a"]]
     np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", d, na)), sizes[np.argmax(np.abs(na), axis=1)], atol=1e-9)
-    assert (r.pairs["angle"] <= np.radians(P.pair_angle_deg) + 1e-12).all()
+    # The facet rule's pairs (first) within the pair angle of the normal, the slanted ones within the cone.
+    c = r.summary["counts"]
+    facet = np.arange(c["pairs"]) < c["pairs"] - c["slanted_pairs"]
+    assert c["slanted_pairs"] > 0 and c["cone_pairs"] == 0
+    assert (r.pairs["angle"][facet] <= np.radians(P.pair_angle_deg) + 1e-12).all()
+    assert (r.pairs["angle"] <= np.radians(P.cone_angle_deg) + 1e-12).all()
+    assert r.pairs["angle"][~facet].max() > np.radians(P.pair_angle_deg)
+
+
+def test_a_slanted_squeeze_lifts_a_bar_onto_its_corner_where_straight_ones_cannot():
+    # A 0.4 x 0.1 x 0.15 m bar of 4.5 kg on the corner of one end, its balls on both ends with the
+    # sampler's pivot bounds: straight across, friction alone would have to hold up the far end (55 N
+    # of squeeze); a slanted squeeze, the far ball higher, adds the couple of its normal forces.
+    bar = trimesh.creation.box((0.4, 0.1, 0.15))
+    bar.apply_translation([0.0, 0.0, 0.075])
+    r = analyze.compute(bar, 4.5, P)
+    c = r.summary["counts"]
+    p = np.stack([r.contacts["px"], r.contacts["py"], r.contacts["pz"]], 1)
+    n = np.stack([r.contacts["nx"], r.contacts["ny"], r.contacts["nz"]], 1)
+    a, b = r.pairs["contact_a"], r.pairs["contact_b"]
+    ends = np.abs(n[a, 0]) > 0.5
+    facet = np.arange(len(a)) < c["pairs"] - c["slanted_pairs"]
+    mu = 0.4
+    prm = stability.Params(mu_eef=mu, mu_table=mu, f_max=stability.normal_bound(0.9 * 50.0, mu))
+    res = stability.evaluate(4.5, np.tile([0.0, 0.0, 0.075], (len(a), 1)), np.tile([-0.2, -0.05, 0.0], (len(a), 1, 1)),
+                             None, np.stack([p[a], p[b]], 1), -np.stack([n[a], n[b]], 1), None, 0.25, prm,
+                             compute_margin=False)
+    assert (ends & facet).sum() >= 3 and not res.stable[ends & facet].any()
+    assert res.stable[ends & ~facet].any()
 
 
 def test_box_contacts_keep_boundary_margin_and_spacing():
@@ -324,8 +352,9 @@ def test_cone_pairs_fill_max_pairs_but_facet_pairs_are_never_capped():
                              analyze.Params(max_pairs=30))
     assert sphere.summary["counts"]["pairs"] == 30
     box = analyze.compute(trimesh.creation.box((0.3, 0.2, 0.4)), 2.0, analyze.Params(max_pairs=10))
-    assert box.summary["counts"]["pairs"] == analyze.compute(trimesh.creation.box((0.3, 0.2, 0.4)), 2.0, P) \
-        .summary["counts"]["pairs"] > 10
+    full = analyze.compute(trimesh.creation.box((0.3, 0.2, 0.4)), 2.0, P).summary["counts"]
+    assert box.summary["counts"]["slanted_pairs"] == 0 and full["slanted_pairs"] > 0
+    assert box.summary["counts"]["pairs"] == full["pairs"] - full["slanted_pairs"] > 10
 
 
 def test_spread_pairs_takes_one_per_cluster_from_the_best_and_skips_refused_pairs(rng):
