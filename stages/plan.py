@@ -15,7 +15,10 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   the ball's angle to the surface for the same reason), and the MPC of §5.2
   (``stages.mpc.run_pivot_mpc``) with the friction and force constraints; ``mpc_infeasible`` is a
   failure like any other, and so is ``mpc_marginal`` (feasible only near the force bound or with a
-  large tracking error).
+  large tracking error). A pivot that fails from where the walk left the robot (its balls rolled,
+  its arms in another IK branch) is tried again after a retake of its grasp in SP, release and take
+  the same contacts, the graph's two regrasp edges (:func:`_check_or_retake`, our addition: the
+  graph's checks start from the grasp's own joints, so removing the edge for that state loses it).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
   posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
@@ -177,6 +180,8 @@ class _Context:
                        "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet",
                        "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet",
                        **provenance.analysis_inputs(analysis_dir)}
+        free = np.flatnonzero(self.nodes["kind"] == "free")
+        self.free_of_pose = dict(zip(self.nodes["pose_id"][free].tolist(), free.tolist(), strict=True))
         self._tumble_env = None
         self._pivot_checks = None
 
@@ -221,8 +226,7 @@ def ablated_edges(nodes, edges, params: Params, start: int, goal: int) -> np.nda
 def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, int]:
     """The DiGraph of ok edges after the ablations, with the start and goal free nodes."""
     nodes, edges = ctx.nodes, ctx.edges
-    free = {int(p): int(n) for n, p, k in zip(nodes["node_id"], nodes["pose_id"], nodes["kind"], strict=True)
-            if k == "free"}
+    free = ctx.free_of_pose
     start = free.get(0, -1)
     goal = free.get(int(ctx.sample["goal"]["pose_id"]), -1)
     G = nx.DiGraph()
@@ -323,6 +327,32 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
     if nodes["kind"][u] == "grasp":  # grasp -> grasp: the grasp itself rolls the object
         return _check_squeeze_step(ctx, params, state, data, step, gu)
     return _check_tumble_step(ctx, params, state, u, v, data, step)
+
+
+def _check_or_retake(ctx: _Context, params: Params, G: nx.DiGraph, state: _State, u: int, v: int, data: dict):
+    """:func:`_check_step`, returning the steps walked as a list. A pivot or squeeze tumble that fails
+    from where the walk left the balls is tried once more after a retake of its grasp in SP (release
+    to the pose's free node, the same contacts again: the graph's two regrasp edges). The motions
+    before it left state the graph's checks do not see (balls rolled on the object,
+    ``ball_rolls_off``; arms in another IK branch); a retake puts the balls back on the planned
+    contacts with the grasp's own joints, at the cost of a regrasp. The failure stands, and the edge
+    is removed, when the retake or the motion after it fails too."""
+    ok, why, step, new = _check_step(ctx, params, state, u, v, data)
+    if ok or data["primitive"] == "regrasp" or ctx.nodes["kind"][u] != "grasp" or params.no_regrasp:
+        return ok, why, [step], new
+    f = ctx.free_of_pose.get(int(ctx.nodes["pose_id"][u]), -1)
+    g = int(ctx.nodes["grasp_id"][u])
+    fresh = all(np.array_equal(state.q[a], ctx.q_grasp[a][g]) and not state.roll[a].any() for a in state.q)
+    if fresh or not (G.has_edge(u, f) and G.has_edge(f, u)):
+        return ok, why, [step], new
+    walked, s = [], state
+    for a, b in ((u, f), (f, u)):
+        r_ok, _, r_step, s = _check_step(ctx, params, s, a, b, G.edges[a, b])
+        if not r_ok:
+            return ok, why, [step], new
+        walked.append(r_step)
+    ok2, _, step2, new2 = _check_step(ctx, params, s, u, v, data)
+    return (True, "ok", [*walked, step2], new2) if ok2 else (ok, why, [step], new)
 
 
 def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) -> list[tuple]:
@@ -739,15 +769,15 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
             key = (u, v, state.key())
             if key not in checked:
                 mpc_checks.feed()
-                checked[key] = _check_step(ctx, params, state, u, v, data)
-            ok, why, step, state = checked[key]
+                checked[key] = _check_or_retake(ctx, params, G, state, u, v, data)
+            ok, why, walked, state = checked[key]
             if not ok:
-                failed = (u, v, data, why, step.get("detail"))
+                failed = (u, v, data, why, walked[-1].get("detail"))
                 break
             if data["primitive"] == "pivot" and params.check_mpc:
-                pivots.append((len(steps), u, v, data))
+                pivots.append((len(steps) + len(walked) - 1, u, v, data))
                 mpc_checks.request(u, v, data["edge_id"])
-            steps.append(step)
+            steps.extend(walked)
             if mpc_checks.known_failure():
                 break
         # The pivots' MPC checks, in path order: a failing one comes before any later failure.
@@ -758,7 +788,7 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
                 break
             steps[i].update(mpc_max_error=err, mpc_peak_force=f_peak)
         if failed is None:
-            cost = float(sum(G.edges[u, v]["weight"] for u, v in zip(path[:-1], path[1:], strict=True)))
+            cost = float(sum(ctx.edges["weight"][s["edge_id"]] for s in steps))
             counts = {p: sum(s["primitive"] == p for s in steps) for p in ("pivot", "tumble")}
             # A regrasp changes a grasp: the first grasp out of the start's free node is not one.
             counts["regrasp"] = sum(1 for s in steps if s["primitive"] == "regrasp" and s.get("arms")

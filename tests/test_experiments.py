@@ -416,3 +416,34 @@ def test_a_pivot_whose_ball_has_rolled_to_its_faces_edge_is_refused(builds):
     state.roll["left"] = 0.2 * along / np.linalg.norm(along)
     ok, why, step_out, _ = plan._check_step(ctx, plan.Params(), state, u, v, data)
     assert not ok and why == "ball_rolls_off" and "left ball" in step_out["detail"]
+
+
+def test_a_pivot_refused_for_where_the_walk_left_its_balls_passes_after_a_retake_of_its_grasp(builds):
+    """The walk retakes a grasp in SP (release to the pose's free node, the same contacts again) when a
+    pivot fails from the state the pivots before it left: Exp. 2's first pivot, its left ball rolled
+    20 cm, passes after the retake, its balls back on the planned contacts; not with regrasps
+    ablated, nor without the graph's regrasp edge."""
+    name = "exp2_rotate"
+    b = builds.build(name)
+    step = next(s for s in builds.plan(name)["steps"] if s["primitive"] == "pivot")
+    ctx = plan._Context(load_scene(builds.scene(name)), builds.analysis, b / "sample", b / "graph")
+    G, _, _ = plan.build_search_graph(ctx, plan.Params())
+    u, v, g = step["node_from"], step["node_to"], step["grasp"]
+    X = ctx.X_WO[step["pose_from"]]
+    state = plan._State({a: ctx.q_grasp[a][g] for a in ("left", "right")},
+                        {a: se3.rotate_vectors(X, ctx.n_O[ctx.contact(g, a)]) for a in ("left", "right")}, X)
+    n = ctx.n_O[ctx.contact(g, "left")]
+    along = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    state.roll["left"] = 0.2 * along / np.linalg.norm(along)
+    data = G.edges[u, v]
+    ok, why, walked, new = plan._check_or_retake(ctx, plan.Params(), G, state, u, v, data)
+    free = ctx.free_of_pose[step["pose_from"]]
+    assert ok and [(s["primitive"], s["node_from"], s["node_to"]) for s in walked] == [
+        ("regrasp", u, free), ("regrasp", free, u), ("pivot", u, v)]
+    assert walked[1]["arms"] == ["left", "right"] and walked[1]["grasp_to"] == g
+    assert np.linalg.norm(new.roll["left"]) < 0.05  # one pivot's rolling, not 20 cm more
+    ok, why, walked, _ = plan._check_or_retake(ctx, plan.Params(no_regrasp=True), G, state, u, v, data)
+    assert not ok and why == "ball_rolls_off" and len(walked) == 1
+    G.remove_edge(free, u)  # no retake without the graph's regrasp edge
+    ok, why, walked, _ = plan._check_or_retake(ctx, plan.Params(), G, state, u, v, data)
+    assert not ok and why == "ball_rolls_off"
