@@ -236,6 +236,18 @@ def _prefilter(scene, robot, collide, params: Params, X_kept: np.ndarray, points
     return reason
 
 
+RETRY_ROWS = 4096
+
+
+def _target_rows(p_W: np.ndarray, rows: int) -> np.ndarray:
+    """``(N,)`` a row in ``[0, rows)`` for each target ``p_W (N, 3)`` (m), from its coordinates to 0.01 mm
+    (a multiplicative hash: the same target, the same row, on any machine)."""
+    k = np.round(np.asarray(p_W) * 1e5).astype(np.int64).astype(np.uint64)
+    h = (k[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (k[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) \
+        ^ (k[:, 2] * np.uint64(0x165667B19E3779F9))
+    return ((h >> np.uint64(33)) % np.uint64(rows)).astype(np.int64)
+
+
 def _collide_with_retries(robot, collide, params: Params, rng, X: np.ndarray, balls: tuple, qs: tuple,
                           cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Collisions of the arms with the table, obstacles, the object and each other for candidates
@@ -247,6 +259,9 @@ def _collide_with_retries(robot, collide, params: Params, rng, X: np.ndarray, ba
     solution), and only the rows that got a new solution are checked again: the check of a row depends
     on its joints."""
     q_l, q_r = qs
+    # Each target's jitter is a row of one table drawn per call, picked by the target itself: a
+    # candidate's grasp does not depend on which others share its batch.
+    jitter = rng.normal(0.0, params.retry_jitter, (params.collision_retries, RETRY_ROWS, q_l.shape[1]))
     touching = np.ones((len(cand), 2), bool)
     ok, why, blame = collide(q_l[cand], q_r[cand], X[cand], touching, blame=True)
     failed, why, blame = cand[~ok], why[~ok].astype(object), blame[~ok]
@@ -258,7 +273,8 @@ def _collide_with_retries(robot, collide, params: Params, rng, X: np.ndarray, ba
             a = robot.arm(arm)
             redo = np.flatnonzero(blame[:, s])
             seed = robot.library_seeds(arm, ball[failed[redo]], 1 + params.ik_restarts + attempt)
-            seed = np.clip(seed + rng.normal(0.0, params.retry_jitter, seed.shape), a.lower, a.upper)
+            seed = np.clip(seed + jitter[attempt, _target_rows(ball[failed[redo]], len(jitter[attempt]))],
+                           a.lower, a.upper)
             res = robot.ik(arm, ball[failed[redo]], q_seed=seed, rng=rng, restarts=0, tol=params.ik_tol)
             q[failed[redo[res.ok]]] = res.q[res.ok]
             moved[redo[res.ok]] = True
