@@ -352,6 +352,7 @@ def _check_or_retake(ctx: _Context, params: Params, G: nx.DiGraph, state: _State
             return ok, why, [step], new
         walked.append(r_step)
     ok2, _, step2, new2 = _check_step(ctx, params, s, u, v, data)
+    walked[1]["retake"] = True
     return (True, "ok", [*walked, step2], new2) if ok2 else (ok, why, [step], new)
 
 
@@ -790,9 +791,11 @@ def _search(ctx: _Context, params: Params, mpc_checks: _MPCChecks) -> dict:
         if failed is None:
             cost = float(sum(ctx.edges["weight"][s["edge_id"]] for s in steps))
             counts = {p: sum(s["primitive"] == p for s in steps) for p in ("pivot", "tumble")}
-            # A regrasp changes a grasp: the first grasp out of the start's free node is not one.
+            # A regrasp changes a grasp: the first grasp out of the start's free node is not one, nor
+            # is a retake of the same grasp (counted apart).
             counts["regrasp"] = sum(1 for s in steps if s["primitive"] == "regrasp" and s.get("arms")
-                                    and s["node_from"] != start)
+                                    and s["node_from"] != start and not s.get("retake"))
+            counts["retake"] = sum(1 for s in steps if s.get("retake"))
             # Regrasps while one ball holds the object in USP (after a catch too: the hand-over).
             counts["usp_regrasp"] = sum(1 for s in steps if s["support"] == "USP" and s["primitive"] == "regrasp"
                                         and s.get("arms"))

@@ -440,7 +440,7 @@ def test_a_pivot_refused_for_where_the_walk_left_its_balls_passes_after_a_retake
     free = ctx.free_of_pose[step["pose_from"]]
     assert ok and [(s["primitive"], s["node_from"], s["node_to"]) for s in walked] == [
         ("regrasp", u, free), ("regrasp", free, u), ("pivot", u, v)]
-    assert walked[1]["arms"] == ["left", "right"] and walked[1]["grasp_to"] == g
+    assert walked[1]["arms"] == ["left", "right"] and walked[1]["grasp_to"] == g and walked[1]["retake"]
     assert np.linalg.norm(new.roll["left"]) < 0.05  # one pivot's rolling, not 20 cm more
     ok, why, walked, _ = plan._check_or_retake(ctx, plan.Params(no_regrasp=True), G, state, u, v, data)
     assert not ok and why == "ball_rolls_off" and len(walked) == 1
