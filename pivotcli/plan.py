@@ -57,8 +57,8 @@ def plan(
         raise typer.Exit(code=1)
     c = p["counts"]
     msg = (f"{scene.stem}: {p['status']} plan, cost {p['cost']:.2f}: {c['pivot']} pivots, {c['tumble']} tumbles, "
-           f"{c['regrasp']} regrasps ({c.get('usp_regrasp', 0)} in USP), {c.get('retake', 0)} retakes; {stagelog.backtracks(p)} edges removed "
-           f"by backtracking; {p['time']:.2f} s -> {out}")
+           f"{c['regrasp']} regrasps ({c.get('usp_regrasp', 0)} in USP), {c.get('retake', 0)} retakes; "
+           f"{stagelog.backtracks(p)} edges removed by backtracking; {p['time']:.2f} s -> {out}")
     if p["status"] == "partial":
         err = p["remaining_error"]
         msg += f"\n  goal out of reach: ended {err['distance'] * 100:.1f} cm short (x {err['x'] * 100:+.1f} cm)"

@@ -146,8 +146,8 @@ def print_summary(s: dict) -> None:
         lines.append(f"plan: infeasible: {p['reason']}")
     elif p["status"]:
         lines.append(f"plan: {p['status']}, cost {p['cost']:.2f}: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} "
-                     f"tumbles, {c.get('regrasp', 0)} regrasps ({c.get('usp_regrasp', 0)} in USP), {c.get('retake', 0)} retakes, "
-                     f"{p['edges_removed']} edges removed by backtracking")
+                     f"tumbles, {c.get('regrasp', 0)} regrasps ({c.get('usp_regrasp', 0)} in USP), "
+                     f"{c.get('retake', 0)} retakes, {p['edges_removed']} edges removed by backtracking")
     if "remaining_error" in p:
         lines.append(f"goal out of reach: {100 * p['remaining_error']['distance']:.1f} cm short")
     ph = s["physics"]

@@ -236,6 +236,7 @@ def _prefilter(scene, robot, collide, params: Params, X_kept: np.ndarray, points
     return reason
 
 
+#: Rows of the table of IK jitters a collision retry draws per call (:func:`_collide_with_retries`).
 RETRY_ROWS = 4096
 
 

@@ -140,3 +140,49 @@ def test_physics_reason_names_the_first_failed_criterion():
     assert sweep.physics_reason(ex) == ("physics:fell", "tilted 40 deg")
     old = {"success": False, "final_position_error": 0.02, "final_yaw_error_deg": 1.0}  # before issue 15
     assert sweep.physics_reason(old)[0] == "physics:missed_goal"
+
+
+
+def test_a_candidates_grasp_does_not_depend_on_the_rest_of_its_batch(small_build):
+    """Grasp refinement of a few poses alone finds, at each, the grasps (pair and joints) that the
+    refinement of every pose at once finds there: a collision retry's IK jitter is the candidate's
+    own, as the first IK's is. The benchmark's reachability label (the start and goal refined alone)
+    then counts the grasps the sample stage has there."""
+    from stages import artifacts, se3
+    from stages import sample as sample_stage
+    from stages.objectmodel import load_object_model
+    from stages.poses import PoseSet
+    from stages.robot import IKParams, load_robot
+    from stages.scene import load_scene
+
+    scene_path, b = small_build
+    scene = load_scene(scene_path)
+    model, tables = load_object_model(b / "analysis")
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links),
+                       ik_params=IKParams(min_chunk=1024))
+    p = sample_stage.Params()
+    collide = sample_stage.make_scene_collision_fn(scene, robot, tables["mesh"],
+                                                   clearance=(p.arm_clearance, p.stick_clearance))
+    robot.prepare_ik()
+    t = artifacts.read_table(b / "sample" / "poses.parquet", "poses")
+    keep = np.flatnonzero(np.asarray(t["status"]) == "ok")[:24]
+    n = len(keep)
+    ps = PoseSet(X_WO=se3.matrix_from_columns(t.columns)[keep], placement=np.asarray(t["placement_id"])[keep],
+                 support=np.asarray(t["support"])[keep], status=np.full(n, "ok"), parent=np.full(n, -1),
+                 primitive=np.full(n, "pivot"), vertex=np.full(n, -1), edge=np.full((n, 2), -1), angle=np.zeros(n),
+                 margin=np.asarray(t["margin"])[keep], links=np.zeros((0, 2), np.int64),
+                 link_primitive=np.zeros(0, str), link_vertex=np.zeros(0, np.int64),
+                 link_edge=np.zeros((0, 2), np.int64), link_angle=np.zeros(0))
+
+    def refine(ids):
+        g, rej, _ = sample_stage.refine_grasps(scene, model, tables, ps, robot, collide, p, np.random.default_rng(0),
+                                                ids)
+        rows = sorted(zip(g["pose_id"].tolist(), g["pair_id"].tolist(), map(tuple, np.round(g["q_left"], 9)),
+                          map(tuple, np.round(g["q_right"], 9)), strict=True))
+        return rows, rej
+
+    every, rejects = refine(None)
+    few, _ = refine(np.arange(0, n, 3))
+    assert (np.char.find(rejects["reason"].astype(str), "collision") >= 0).sum() > 50  # retries were made
+    assert few == [r for r in every if r[0] % 3 == 0] and len(few) > 20
+
