@@ -180,8 +180,7 @@ class _Context:
                        "grasps": sd / "grasps.parquet", "poses": sd / "poses.parquet",
                        "pose_links": sd / "pose_links.parquet", "grasp_rejects": sd / "grasp_rejects.parquet",
                        **provenance.analysis_inputs(analysis_dir)}
-        free = np.flatnonzero(self.nodes["kind"] == "free")
-        self.free_of_pose = dict(zip(self.nodes["pose_id"][free].tolist(), free.tolist(), strict=True))
+        self.free_of_pose = free_nodes(self.nodes)
         self._tumble_env = None
         self._pivot_checks = None
 
@@ -223,10 +222,17 @@ def ablated_edges(nodes, edges, params: Params, start: int, goal: int) -> np.nda
     return out
 
 
+def free_nodes(nodes) -> dict[int, int]:
+    """Pose id -> its free node (an SP pose with no ball on the object)."""
+    free = np.flatnonzero(np.asarray(nodes["kind"]) == "free")
+    return dict(zip(np.asarray(nodes["pose_id"])[free].tolist(), np.asarray(nodes["node_id"])[free].tolist(),
+                    strict=True))
+
+
 def build_search_graph(ctx: _Context, params: Params) -> tuple[nx.DiGraph, int, int]:
     """The DiGraph of ok edges after the ablations, with the start and goal free nodes."""
     nodes, edges = ctx.nodes, ctx.edges
-    free = ctx.free_of_pose
+    free = free_nodes(nodes)
     start = free.get(0, -1)
     goal = free.get(int(ctx.sample["goal"]["pose_id"]), -1)
     G = nx.DiGraph()
