@@ -911,7 +911,7 @@ def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarra
     axis = rotvec[:3] / np.linalg.norm(rotvec[:3])
     point = model.vertices[vertex] if primitive == "pivot" else model.vertices[edge[0]]
     point = se3.transform_points(X_from, point)
-    if any(collide(se3.transform_about_line(point, axis, s * angle) @ X_from) for s in fractions):
+    if any(collide(X) for X in se3.transform_about_line(point, axis, np.asarray(fractions) * angle) @ X_from):
         return True
     if primitive != "pivot":
         return False
@@ -922,7 +922,8 @@ def _swept_hits(model: ObjectModel, collide, X_from: np.ndarray, X_to: np.ndarra
     d = se3.transform_points(X_from, model.com) - point if d is None else d
     lean = np.cross([d[0], d[1], 0.0], [0.0, 0.0, 1.0])
     X_tilt = se3.transform_about_line(point, lean / np.linalg.norm(lean), tilt) @ X_from
-    return any(collide(se3.transform_about_line(point, axis, s * angle) @ X_tilt) for s in (0.0, *fractions, 1.0))
+    turns = se3.transform_about_line(point, axis, np.array([0.0, *fractions, 1.0]) * angle) @ X_tilt
+    return any(collide(X) for X in turns)
 
 
 def _tumble(model: ObjectModel, X: np.ndarray, g: int, e: int, max_faces: int = 16):
