@@ -110,16 +110,31 @@ def mass_properties(mesh: trimesh.Trimesh, mass: float) -> dict:
 
 
 # --------------------------------------------------------------------------------------------- hull
+class _HullFaces(NamedTuple):
+    """The convex hull's triangles merged into coplanar faces (the placement faces), frame O:
+    ``group (F,)`` each triangle's face, ``area (G,)`` m^2, unit outward ``normal (G, 3)`` and
+    ``vg (K, 2)`` the distinct (hull vertex, face) incidences, sorted by vertex."""
+
+    group: np.ndarray
+    area: np.ndarray
+    normal: np.ndarray
+    vg: np.ndarray
+
+
 def analyze_hull(mesh: trimesh.Trimesh, com: np.ndarray, params: Params) -> tuple[dict, dict]:
     """Hull vertices/edges (pivot and tumble candidates) and placements, frame O.
 
     Returns ``(hull, placements)`` column dicts.
     """
     hull = mesh.convex_hull
-    V, F = np.asarray(hull.vertices), np.asarray(hull.faces)
-    N = np.asarray(hull.face_normals)
-    adj = np.asarray(hull.face_adjacency)
-    # Merge coplanar adjacent hull triangles into faces (placement faces).
+    faces = _merged_faces(hull, params)
+    hull_cols, remap = _hull_features(hull, faces)
+    return hull_cols, _placements(np.asarray(hull.vertices), faces, remap, com, params)
+
+
+def _merged_faces(hull: trimesh.Trimesh, params: Params) -> _HullFaces:
+    """Adjacent hull triangles whose normals agree within ``hull_coplanar_deg`` merged into faces."""
+    F, N, adj = np.asarray(hull.faces), np.asarray(hull.face_normals), np.asarray(hull.face_adjacency)
     cos_tol = np.cos(np.radians(params.hull_coplanar_deg))
     same = np.einsum("ij,ij->i", N[adj[:, 0]], N[adj[:, 1]]) > cos_tol
     graph = sp.coo_matrix((np.ones(same.sum()), (adj[same, 0], adj[same, 1])), shape=(len(F), len(F)))
@@ -131,11 +146,16 @@ def analyze_hull(mesh: trimesh.Trimesh, com: np.ndarray, params: Params) -> tupl
     g_normal = np.zeros((n_groups, 3))
     np.add.at(g_normal, group, N * areas[:, None])
     g_normal /= np.linalg.norm(g_normal, axis=1, keepdims=True)
-
-    # Corner vertices: incident to >= 3 distinct merged faces.
     vg = np.unique(np.stack([F.ravel(), np.repeat(group, 3)], axis=1), axis=0)
-    corner = np.bincount(vg[:, 0], minlength=len(V)) >= 3
-    # Edges between two distinct merged faces.
+    return _HullFaces(group, g_area, g_normal, vg)
+
+
+def _hull_features(hull: trimesh.Trimesh, faces: _HullFaces) -> tuple[dict, np.ndarray]:
+    """The hull table: corner vertices (incident to >= 3 merged faces; the pivot candidates) then
+    edges between two merged faces (the tumble candidates) with the angle between their normals.
+    Returns its columns and ``remap (V,)``, hull vertex -> corner id (-1: not a corner)."""
+    V, adj, group, g_normal = np.asarray(hull.vertices), np.asarray(hull.face_adjacency), faces.group, faces.normal
+    corner = np.bincount(faces.vg[:, 0], minlength=len(V)) >= 3
     edge_mask = group[adj[:, 0]] != group[adj[:, 1]]
     e_verts = np.sort(np.asarray(hull.face_adjacency_edges)[edge_mask], axis=1)
     e_faces = np.stack([group[adj[edge_mask, 0]], group[adj[edge_mask, 1]]], axis=1)
@@ -149,27 +169,31 @@ def analyze_hull(mesh: trimesh.Trimesh, com: np.ndarray, params: Params) -> tupl
     n_v, n_e = len(corner_ids), len(e_verts)
     pv = V[corner_ids]
     ea, eb = V[e_verts[:, 0]], V[e_verts[:, 1]]
-    hull_cols = {
+    none = -np.ones(n_v, dtype=np.int64)
+    cols = {
         "hull_id": np.arange(n_v + n_e),
         "kind": np.array(["vertex"] * n_v + ["edge"] * n_e),
         "v0": np.concatenate([np.arange(n_v), remap[e_verts[:, 0]]]),
-        "v1": np.concatenate([-np.ones(n_v, dtype=np.int64), remap[e_verts[:, 1]]]),
-        "x0": np.concatenate([pv[:, 0], ea[:, 0]]),
-        "y0": np.concatenate([pv[:, 1], ea[:, 1]]),
-        "z0": np.concatenate([pv[:, 2], ea[:, 2]]),
-        "x1": np.concatenate([pv[:, 0], eb[:, 0]]),
-        "y1": np.concatenate([pv[:, 1], eb[:, 1]]),
-        "z1": np.concatenate([pv[:, 2], eb[:, 2]]),
-        "face_a": np.concatenate([-np.ones(n_v, dtype=np.int64), e_faces[:, 0]]),
-        "face_b": np.concatenate([-np.ones(n_v, dtype=np.int64), e_faces[:, 1]]),
+        "v1": np.concatenate([none, remap[e_verts[:, 1]]]),
+        **{f"{c}0": np.concatenate([pv[:, i], ea[:, i]]) for i, c in enumerate("xyz")},
+        **{f"{c}1": np.concatenate([pv[:, i], eb[:, i]]) for i, c in enumerate("xyz")},
+        "face_a": np.concatenate([none, e_faces[:, 0]]),
+        "face_b": np.concatenate([none, e_faces[:, 1]]),
         "angle": np.concatenate([np.zeros(n_v), e_angle]),
     }
+    return cols, remap
 
-    # Placements: one per merged face. Rotate each face's vertices into its table frame T (face on
-    # z = 0, outward normal down), then order them by angle about their centroid: a convex face's
-    # vertices are all extreme, so that order is its counter-clockwise support polygon.
+
+def _placements(V: np.ndarray, faces: _HullFaces, remap: np.ndarray, com: np.ndarray, params: Params) -> dict:
+    """One placement per merged face: its resting pose ``X_TO``, support polygon, CoM margin (SP when
+    at least ``sp_margin``), CoM height and support corners (ids of :func:`_hull_features`).
+
+    Each face's vertices are rotated into its table frame T (face on z = 0, outward normal down), then
+    ordered by angle about their centroid: a convex face's vertices are all extreme, so that order is
+    its counter-clockwise support polygon."""
+    g_normal, n_groups = faces.normal, len(faces.area)
     R = se3.rotation_between(g_normal, np.array([0.0, 0.0, -1.0]))  # (G, 3, 3) R_TO
-    pg, pv_id = vg[:, 1], vg[:, 0]  # (group, hull vertex) pairs, sorted by vertex
+    pg, pv_id = faces.vg[:, 1], faces.vg[:, 0]  # (group, hull vertex) pairs, sorted by vertex
     p_T = np.einsum("kij,kj->ki", R[pg], V[pv_id])
     com_T = np.einsum("gij,j->gi", R, com)
     counts = np.bincount(pg, minlength=n_groups)
@@ -186,22 +210,17 @@ def analyze_hull(mesh: trimesh.Trimesh, com: np.ndarray, params: Params) -> tupl
     nxt = np.arange(len(pg)) + 1
     nxt[np.cumsum(counts) - 1] = starts  # wrap to each polygon's first vertex
     margins = _polygon_margins(xy, xy[nxt], pg, n_groups)
-    heights = com_T[:, 2] + shift[:, 2]
-    support = [np.sort(v[v >= 0]) for v in np.split(remap[pv_id], np.cumsum(counts)[:-1])]
-    polygons = [p.ravel() for p in np.split(xy, np.cumsum(counts)[:-1])]
-    cols = se3.columns_from_matrix(X_TO)
-    placements = {
+    return {
         "placement_id": np.arange(n_groups),
         "nx": g_normal[:, 0], "ny": g_normal[:, 1], "nz": g_normal[:, 2],
-        "area": g_area,
-        **cols,
+        "area": faces.area,
+        **se3.columns_from_matrix(X_TO),
         "stable": margins >= params.sp_margin,
         "margin": margins,
-        "com_height": heights,
-        "support_vertices": support,
-        "polygon": polygons,
+        "com_height": com_T[:, 2] + shift[:, 2],
+        "support_vertices": [np.sort(v[v >= 0]) for v in np.split(remap[pv_id], np.cumsum(counts)[:-1])],
+        "polygon": [p.ravel() for p in np.split(xy, np.cumsum(counts)[:-1])],
     }
-    return hull_cols, placements
 
 
 def _renumber_by_first(labels: np.ndarray) -> np.ndarray:

@@ -358,8 +358,10 @@ def _check_or_retake(ctx: _Context, params: Params, G: nx.DiGraph, state: _State
             return ok, why, [step], new
         walked.append(r_step)
     ok2, _, step2, new2 = _check_step(ctx, params, s, u, v, data)
+    if not ok2:
+        return ok, why, [step], new
     walked[1]["retake"] = True
-    return (True, "ok", [*walked, step2], new2) if ok2 else (ok, why, [step], new)
+    return True, "ok", [*walked, step2], new2
 
 
 def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) -> list[tuple]:
@@ -379,7 +381,7 @@ def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) 
     poses_ab = np.stack([ctx.grasps["pose_id"][ga], ctx.grasps["pose_id"][gb]], axis=1)
     p_g, n_g, q_g, pivot_sets = ctx.pivot_checks()
     pc = PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
-                           ctx.edges["vertex"][e], np.full((len(e), 2), -1), pivot_sets, p_g, n_g, q_g)
+                     ctx.edges["vertex"][e], np.full((len(e), 2), -1), pivot_sets, p_g, n_g, q_g)
     gp = replace(GraphParams(), pivot_arms=True, max_eef_normal_change=ctx.max_eef_normal_change)
     status = check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
     return [(*a, str(st)) for a, st in zip(arcs, status, strict=True) if st != "ok"]
