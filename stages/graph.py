@@ -65,7 +65,7 @@ from stages import artifacts, mpc, poses, provenance, se3, squeeze, stability, s
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.objectmodel import load_object_model
-from stages.robot import load_robot
+from stages.robot import follow_ik, load_robot
 from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import Scene, load_scene
 
@@ -160,7 +160,7 @@ COLLISION_BLOCK = 8
 
 
 def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),
-                     touching=None, batch: bool = False):
+                     touching=None, batch: bool = False, follow: bool = False):
     """IK and collisions along object trajectories with both balls on their contacts.
 
     Parameters
@@ -171,6 +171,8 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
     active : which balls follow the object; an inactive arm stays at its seed.
     touching : which balls may touch the object (default: the active ones).
     batch : solve the IK of all samples at once first (``Robot.ik_trajectory``; for few long motions).
+    follow : the balls turn with the object (``stages.robot.follow_ik``, as ``stages.trajectory`` moves
+        a tumble's pusher) instead of position-only IK.
 
     Returns ``ok (E,)``, ``reason (E,)`` (first failure), ``q (T, E, 2, n)``.
     """
@@ -185,8 +187,12 @@ def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: 
             continue
         ball_O = p_O[:, k] + ball_radius * n_O[:, k]
         targets = np.einsum("etij,ej->tei", X_traj[..., :3, :3], ball_O) + np.swapaxes(X_traj[..., :3, 3], 0, 1)
-        res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol, max_joint_step=params.max_joint_step,
-                                  batch=batch)
+        if follow:
+            res = follow_ik(robot, arm, targets, X_traj, np.arange(T), n_O[:, k], q0[:, k], tol=params.ik_tol,
+                            max_jump=params.max_joint_step)
+        else:
+            res = robot.ik_trajectory(arm, targets, q0[:, k], tol=params.ik_tol,
+                                      max_joint_step=params.max_joint_step, batch=batch)
         q[:, :, k] = res.q
         bad = ~res.ok
         first = np.argmax(bad, axis=0)
@@ -1017,7 +1023,8 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     about the contact's motion, which refused the push a person makes on a box's far side face), on
     the arm's side of the object, best first (``push_candidates`` per arm; :func:`_push_candidates`).
     Every candidate of every tumble is followed along the roll (``poses.roll_segments``) to
-    :func:`release_angle`, where ``stages.trajectory`` lets go, with IK from a fresh solution and
+    :func:`release_angle`, where ``stages.trajectory`` lets go, with IK from a fresh solution, the ball
+    turning with the object as ``stages.trajectory`` moves it (``stages.robot.follow_ik``), and
     checked for collisions, the other arm at its rest posture (its ball may meet the object: it is the
     one that catches), in one batch per arm.
 
@@ -1048,7 +1055,7 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
         ok, why, q = check_arm_motion(robot, collide, cand.X_push[k], p_O, n_O, q0_both, r, params, active=active,
-                                      touching=(True, True))  # the idle ball may meet the object: it catches
+                                      touching=(True, True), follow=True)  # the idle ball may catch
         status[sel] = why
         for i in np.flatnonzero(ok):
             q_path[sel[i]] = q[:, i, j]

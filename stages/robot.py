@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from stages import se3
 from stages.errors import InputError
@@ -667,6 +668,97 @@ def _dls(a: Arm, p_T: np.ndarray, q0: np.ndarray, tol: float, prm: IKParams):
         if not keep.all():
             act, qa, pa, free = act[keep], qa[:, keep], pa[:, keep], free[:, keep]
     return q.T.copy(), err
+
+
+def follow_ik(robot: Robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, keys: np.ndarray, n_O: np.ndarray,
+              q0: np.ndarray, iters: int = 12, tol: float = 1e-3, max_jump: float = 0.5,
+              both: bool = False) -> IKResult:
+    """Joints that put ``arm``'s ball on ``targets (K, E, 3)`` (W, m) *and turn it with the object*, for
+    E motions at once: row ``keys[k]`` of the object's poses ``X_WO (E, T, 4, 4)`` at target k.
+
+    A ball on a turning object rolls across its face unless it turns with it (notes: "the ball turns
+    with the object"): over a 90 deg tumble a ball that keeps its orientation rolls 3 cm, and the stick
+    that carries it, kept level, meets the face that comes up. Here the ball's rotation about the
+    object's turning axis (its part tangent to the contact, outward normal ``n_O (E, 3)``, O) follows
+    the object's, key to key (the ball turned by the object's turn since the previous key, about that
+    axis only; both tangent parts with ``both``); spin about the normal is left to the posture.
+    Damped least squares with task priority (Nakamura's): the position, then that rotation error in
+    its null space; geometric Jacobian, joint limits by clamping, ``iters`` iterations per key seeded
+    from the previous key (one branch), from ``q0 (E, n)``. A motion's result depends on it alone.
+
+    Returns ``IKResult`` ``(K, E)``: ``ik_unreachable`` (position error over ``tol`` m) or
+    ``joint_jump`` (a key's largest joint change over ``max_jump`` rad), ``ok`` otherwise.
+    """
+    a = robot.arm(arm)
+    K, E, n = targets.shape[0], targets.shape[1], a.dof
+    R_rel = X_WO[:, :, :3, :3] @ np.swapaxes(X_WO[:, :1, :3, :3], -1, -2)  # (E, T, 3, 3)
+    T = R_rel.shape[1]
+    q = np.clip(np.asarray(q0, dtype=float), a.lower, a.upper)
+    out, err = np.zeros((K, E, n)), np.zeros((K, E))
+    code = np.zeros((K, E), dtype=int)
+    axis = np.tile([1.0, 0.0, 0.0], (E, 1))
+    for k, i in enumerate(np.asarray(keys).tolist()):  # a few dozen keys
+        q_prev = q.copy()
+        n_W = np.einsum("eij,ej->ei", X_WO[:, i, :3, :3], n_O)
+        d = Rotation.from_matrix(R_rel[:, min(i + 1, T - 1)] @ np.swapaxes(R_rel[:, max(i - 1, 0)], -1, -2)).as_rotvec()
+        dn = np.linalg.norm(d, axis=1)
+        axis = np.where(dn[:, None] > 1e-9, d / np.maximum(dn, 1e-300)[:, None], axis)
+        S = axis - np.einsum("ei,ei->e", axis, n_W)[:, None] * n_W
+        S = (S / np.maximum(np.linalg.norm(S, axis=1), 1e-9)[:, None])[:, None]  # (E, 1, 3)
+        if both:
+            S = np.concatenate([S, np.cross(n_W, S[:, 0])[:, None]], axis=1)
+        # Incrementally: the ball as it is, turned by the object's turn since the last key (an absolute
+        # target would leak the free components' drift into the tracked one).
+        turn = R_rel[:, i] @ np.swapaxes(R_rel[:, keys[k - 1] if k else i], -1, -2)
+        q = _follow_key(a, targets[k], turn @ robot.fk(arm, q)[:, a.eef_index, :3, :3], S, q, iters)
+        err[k] = np.linalg.norm(targets[k] - robot.eef_position(arm, q), axis=1)
+        jump = np.abs(q - q_prev).max(axis=1) > max_jump if k else np.zeros(E, bool)
+        code[k] = np.where(err[k] > tol, 1, np.where(jump, 3, 0))
+        out[k] = q
+    return IKResult(q=out, ok=code == 0, reason=np.asarray(IK_REASONS)[code], err=err)
+
+
+def _follow_key(a: Arm, p_T: np.ndarray, R_T: np.ndarray, S: np.ndarray, q: np.ndarray, iters: int,
+                lam2: float = 1e-6, max_dq: float = 0.2) -> np.ndarray:
+    """:func:`follow_ik` at one key: ``iters`` task-priority steps from ``q (E, n)`` towards ball centres
+    ``p_T (E, 3)`` and, in the position's null space, the rotation error to ``R_T (E, 3, 3)`` along the
+    rows of ``S (E, s, 3)``; a motion stops once its position error is under 0.01 mm and its step under
+    1 mrad. Returns the joints ``(E, n)``."""
+    E, n = q.shape
+    q = q.copy()
+    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    cols_of = a.joint[moving]
+    free = np.ones((E, n), bool)
+    act = np.arange(E)
+    I_n, I_s = np.eye(n), np.eye(S.shape[1])
+    for _ in range(iters):
+        if not len(act):
+            break
+        fr = _fk_frames(a, q[act].T, upto=a.eef_index + 1, keep_rot=True)
+        p = fr[-1][1].T
+        R = np.stack([c.T for c in fr[-1][0]], axis=-1)  # (m, 3, 3), columns
+        w = np.stack([fr[j][2].T for j in moving], axis=2)  # (m, 3, n') world joint axes
+        o = np.stack([fr[j][1].T for j in moving], axis=2)
+        Jw, Jp = np.zeros((len(act), 3, n)), np.zeros((len(act), 3, n))
+        Jw[:, :, cols_of] = w
+        Jp[:, :, cols_of] = np.cross(w, p[:, :, None] - o, axis=1)
+        f = free[act][:, None, :]
+        Jp, Jr = Jp * f, (S[act] @ Jw) * f  # a joint the last step pushed into a limit sits out
+        e_p = p_T[act] - p
+        e_r = np.einsum("esi,ei->es", S[act], Rotation.from_matrix(R_T[act] @ np.swapaxes(R, -1, -2)).as_rotvec())
+        Jp_pinv = np.swapaxes(Jp, -1, -2) @ np.linalg.inv(Jp @ np.swapaxes(Jp, -1, -2) + lam2 * np.eye(3))
+        dq1 = np.einsum("enk,ek->en", Jp_pinv, e_p)
+        N = I_n - Jp_pinv @ Jp
+        JrN = Jr @ N
+        y = np.linalg.solve(JrN @ np.swapaxes(JrN, -1, -2) + lam2 * I_s,
+                            (e_r - np.einsum("esn,en->es", Jr, dq1))[..., None])[..., 0]
+        dq = dq1 + np.einsum("enm,esm,es->en", N, JrN, y)
+        dq *= np.minimum(1.0, max_dq / np.maximum(np.abs(dq).max(axis=1), 1e-12))[:, None]
+        q_new = q[act] + dq
+        free[act] = ((q_new > a.lower) | (dq > 0)) & ((q_new < a.upper) | (dq < 0))
+        q[act] = np.clip(q_new, a.lower, a.upper)
+        act = act[~((np.linalg.norm(e_p, axis=1) < 1e-5) & (np.abs(dq).max(axis=1) < 1e-3))]
+    return q
 
 
 # ----------------------------------------------------------------------------------------------------

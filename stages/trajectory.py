@@ -118,7 +118,7 @@ from stages.graph import Params as GraphParams
 from stages.graph import push_limits, pusher_motion, release_angle, tip_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
-from stages.robot import load_robot
+from stages.robot import follow_ik, load_robot
 from stages.rolling import rolling_shift
 from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import load_scene
@@ -265,79 +265,19 @@ def pivot_joints(robot, X_ref: np.ndarray, p_O: np.ndarray, n_O: np.ndarray, q0:
 
 def ik_follow(robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, n_O: np.ndarray, q0: np.ndarray,
               every: int, iters: int = 12, tol: float = 1e-3, both: bool = False) -> tuple[np.ndarray, str]:
-    """Joint path ``(T, n)`` that puts the ball on ``targets (T, 3)`` (W) *and turns it with the object*.
-
-    A ball on a turning object rolls unless it turns with it (notes: "the ball turns with the
-    object"; ``stages.execute`` shifts its target by the rolling, :func:`rolling_shift`): over a
-    90° tumble a ball that keeps its orientation rolls 3 cm along the face, off a contact near the
-    edge. Here the ball's rotation about the object's turning axis (its part tangent to the contact,
-    whose outward normal is ``n_O``, O) follows the object's, row to row (the ball turned by the
-    object's turn since the previous row, about that axis only); the rest (spin about the normal,
-    rolling along the axis) is left to the posture.
-    Damped least squares with task priority: the position, then that rotation error in its null space;
-    geometric Jacobian, joint limits by clamping, on every ``every``-th row and the last, seeded from
-    the previous (one branch), joints interpolated between.
-    Returns the path and "ok", or the first failure ("ik_unreachable": a position error above ``tol``
-    m; "joint_jump": a step above 0.5 rad).
-    """
-    a = robot.arm(arm)
-    T, n = len(targets), a.dof
+    """Joint path ``(T, n)`` that puts the ball on ``targets (T, 3)`` (W) *and turns it with the object*
+    at poses ``X_WO (T, 4, 4)`` (:func:`stages.robot.follow_ik`, ``n_O`` the contact's outward normal in
+    O), solved on every ``every``-th row and the last from ``q0``, joints interpolated between (the
+    motions are slow). Returns the path and "ok", or the first failure (``ik_unreachable``,
+    ``joint_jump``)."""
+    T = len(targets)
     keys = np.unique(np.r_[np.arange(0, T, max(every, 1)), T - 1])
-    R_rel = X_WO[:, :3, :3] @ X_WO[0, :3, :3].T
-    q = np.clip(np.asarray(q0, dtype=float), a.lower, a.upper)
-    lam2 = 1e-6
-    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
-    out, why = np.zeros((len(keys), n)), "ok"
-    axis = np.array([1.0, 0.0, 0.0])
-    for m, i in enumerate(keys):  # a few dozen key rows
-        q_prev = q.copy()
-        # The rotation about the object's turning axis rolls the ball across its face; the other
-        # tangential part (rolling along the axis) is left free unless ``both``: that keeps more of the
-        # arm's postures feasible.
-        n_W = se3.rotate_vectors(X_WO[i], n_O)
-        d = Rotation.from_matrix(R_rel[min(i + 1, T - 1)] @ R_rel[max(i - 1, 0)].T).as_rotvec()
-        if np.linalg.norm(d) > 1e-9:
-            axis = d / np.linalg.norm(d)
-        S = (axis - (axis @ n_W) * n_W)[None]
-        S /= max(np.linalg.norm(S), 1e-9)
-        if both:
-            S = np.vstack([S, np.cross(n_W, S[0])])
-        # Incrementally: the ball as it is, turned by the object's turn since the last key row (an
-        # absolute target would leak the free components' drift into the tracked one).
-        R_t = R_rel[i] @ R_rel[keys[m - 1] if m else i].T @ robot.fk(arm, q[None])[0, a.eef_index, :3, :3]
-        free = np.ones(n)
-        for _ in range(iters):
-            F = robot.fk(arm, q[None])[0]
-            p, R = F[a.eef_index, :3, 3], F[a.eef_index, :3, :3]
-            w = np.einsum("kij,kj->ki", F[moving, :3, :3], a.axis[moving])  # world joint axes
-            Jw = np.zeros((3, n))
-            Jw[:, a.joint[moving]] = w.T
-            Jp = np.zeros((3, n))
-            Jp[:, a.joint[moving]] = np.cross(w, p - F[moving, :3, 3]).T
-            Jp, Jr = Jp * free, (S @ Jw) * free  # a joint the last step pushed into a limit sits out
-            e_p = targets[i] - p
-            e_r = S @ Rotation.from_matrix(R_t @ R.T).as_rotvec()
-            # Position first; the rotation in its null space (task priority).
-            Jp_pinv = Jp.T @ np.linalg.inv(Jp @ Jp.T + lam2 * np.eye(3))
-            dq1 = Jp_pinv @ e_p
-            N = np.eye(n) - Jp_pinv @ Jp
-            JrN = Jr @ N
-            dq = dq1 + N @ (JrN.T @ np.linalg.solve(JrN @ JrN.T + lam2 * np.eye(len(S)), e_r - Jr @ dq1))
-            dq *= min(1.0, 0.2 / max(np.abs(dq).max(), 1e-12))
-            q_new = q + dq
-            free = ((q_new > a.lower) | (dq > 0)) & ((q_new < a.upper) | (dq < 0))
-            q = np.clip(q_new, a.lower, a.upper)
-            if np.linalg.norm(e_p) < 1e-5 and np.abs(dq).max() < 1e-3:
-                break
-        err = np.linalg.norm(targets[i] - robot.eef_position(arm, q[None])[0])
-        if why == "ok" and err > tol:
-            why = "ik_unreachable"
-        elif why == "ok" and m > 0 and np.abs(q - q_prev).max() > 0.5:
-            why = "joint_jump"
-        out[m] = q
+    res = follow_ik(robot, arm, targets[keys][:, None], X_WO[None], keys, np.asarray(n_O, dtype=float)[None],
+                    np.asarray(q0, dtype=float)[None], iters=iters, tol=tol, both=both)
+    q = res.q[:, 0]
+    why = "ok" if res.ok.all() else str(res.reason[np.argmin(res.ok[:, 0]), 0])
     t = np.arange(T)
-    return np.stack([np.interp(t, keys, out[:, j]) for j in range(n)], axis=1), why
-
+    return np.stack([np.interp(t, keys, q[:, j]) for j in range(q.shape[1])], axis=1), why
 
 def tool_capsules(robot, arm: str) -> np.ndarray:
     """Indices of ``arm``'s collision capsules rigid with its ball, the ball excepted (the stick and the

@@ -252,6 +252,14 @@ def test_a_lying_box_tipped_away_from_the_robot_is_pushed_on_its_near_face(tmp_p
     balls = robot.eef_position(arm, q)
     want = se3.transform_points(roll.poses(np.linspace(0.0, th_r, len(q))), pc[c] + r * nc[c])
     np.testing.assert_allclose(balls, want, atol=gp.ik_tol)
+    # The ball turns with the box about the roll's axis, as stages.trajectory pushes: it does not roll
+    # on the face (position-only IK keeps its orientation: 61 deg of rolling over the 60 deg roll).
+    from scipy.spatial.transform import Rotation
+
+    R_O = roll.poses(np.linspace(0.0, th_r, len(q)))[:, :3, :3]
+    rel = np.einsum("tji,tjk->tik", R_O, robot.eef_rotation(arm, q))  # the ball's orientation in O
+    rolled = Rotation.from_matrix(rel @ rel[0].T).as_rotvec() @ (R_O[0].T @ roll.a_axis[0])
+    assert np.abs(np.degrees(rolled)).max() < 20.0
     # Best first: the moment less half the offset from the CoM along the axis. With no collisions (the
     # wrists meet the tilting box at the first few), the right arm's first is high and in line (2.4 cm),
     # not the one with the largest moment (0.349 against 0.347 N m/N, 8.7 cm off the line).

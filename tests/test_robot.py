@@ -267,6 +267,37 @@ def test_ik_trajectory_batched_is_a_continuous_solution(robot):
     assert b.reason[-1] != "ok"
 
 
+def test_follow_ik_turns_the_ball_with_the_object_and_one_motion_does_not_depend_on_the_others(scene_robot):
+    """A block rolled 80 deg about the x axis with the ball on its side face: the ball turns with it about
+    that axis (rolls on the face by under 10 deg; position-only IK keeps its orientation, so it rolls
+    tens of degrees), on its targets; each motion's joints are the same solved alone or in a batch."""
+    from scipy.spatial.transform import Rotation
+
+    arm, T = "left", 17
+    p_O, n_O = np.array([0.0, 0.1, 0.08]), np.array([0.0, 1.0, 0.0])
+    X = np.zeros((3, T, 4, 4))
+    targets = np.zeros((T, 3, 3))
+    for e, x in enumerate((-0.05, 0.0, 0.05)):
+        for t in range(T):
+            R = Rotation.from_rotvec([np.radians(80.0) * t / (T - 1), 0.0, 0.0]).as_matrix()
+            X[e, t] = se3.make_transform(R, [x, 0.1, 0.0]) @ se3.make_transform(np.eye(3), [0.0, -0.1, 0.0])
+        targets[:, e] = se3.transform_points(X[e], p_O + 0.02 * n_O)
+
+    def rolled(X_e, q):  # the ball's turn on the object about the roll's axis (x), deg
+        rel = np.einsum("tji,tjk->tik", X_e[:, :3, :3], scene_robot.eef_rotation(arm, q))
+        return np.degrees(np.abs(Rotation.from_matrix(rel @ rel[0].T).as_rotvec()[:, 0])).max()
+
+    q0 = scene_robot.ik(arm, targets[0], rng=np.random.default_rng(0)).q
+    res = rb.follow_ik(scene_robot, arm, targets, X, np.arange(T), np.repeat(n_O[None], 3, axis=0), q0)
+    assert res.ok.all()
+    for e in range(3):
+        np.testing.assert_allclose(scene_robot.eef_position(arm, res.q[:, e]), targets[:, e], atol=1e-3)
+        assert rolled(X[e], res.q[:, e]) < 10.0
+        one = rb.follow_ik(scene_robot, arm, targets[:, e:e + 1], X[e:e + 1], np.arange(T), n_O[None], q0[e:e + 1])
+        np.testing.assert_allclose(one.q[:, 0], res.q[:, e], atol=1e-9)
+    assert rolled(X[0], scene_robot.ik_trajectory(arm, targets[:, 0], q0[0]).q) > 20.0
+
+
 # ----------------------------------------------------------------------------------------------------
 # Geometry kernels against dense sampling (the sampled minimum is an upper bound within one step)
 
