@@ -55,7 +55,7 @@ Edges (``edges.parquet``; every candidate is kept, with ``status`` ``ok`` or its
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -157,6 +157,20 @@ def grasp_geometry(tables, grasps, r):
 
 #: Samples of a motion checked for collisions at once (:func:`check_arm_motion`).
 COLLISION_BLOCK = 8
+
+
+def recorded_params(params: dict) -> Params:
+    """The graph's parameters as its artifacts record them (``edges.parquet``'s ``params``; ``plan.json``
+    carries them on as ``graph``), so that ``pivot plan`` and ``pivot mpc`` check and move as the graph
+    did rather than by this module's defaults. Fields not recorded (``threads``, ``pivot_chunk``: how
+    fast, not what) keep their defaults."""
+    names = {f.name for f in fields(Params)}
+    kw = {k: v for k, v in params.items() if k in names}
+    if "squeeze" in kw:
+        kw["squeeze"] = squeeze.recorded(kw["squeeze"])
+    if "check_durations" in kw:
+        kw["check_durations"] = tuple(kw["check_durations"])
+    return replace(Params(), **kw)
 
 
 def check_arm_motion(robot, collide, X_traj, p_O, n_O, q0, ball_radius, params: Params, active=(True, True),

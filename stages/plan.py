@@ -68,7 +68,6 @@ import networkx as nx
 import numpy as np
 
 from stages import artifacts, diagnosis, mpc, poses, provenance, se3, squeeze, stagelog, transit
-from stages.graph import Params as GraphParams
 from stages.graph import (
     PivotChecks,
     check_arm_motion,
@@ -77,6 +76,7 @@ from stages.graph import (
     grasp_geometry,
     push_limits,
     pusher_motion,
+    recorded_params,
     release_angle,
 )
 from stages.objectmodel import load_object_model
@@ -158,9 +158,10 @@ class _Context:
         self.sample = artifacts.read_json(sd / "sample.json", "sample")
         self.nodes = artifacts.read_table(gd / "nodes.parquet", "nodes")
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
-        self.squeeze = squeeze.recorded(self.edges.meta["params"].get("squeeze", {}))  # the graph's own
-        self.max_eef_normal_change = float(self.edges.meta["params"].get(
-            "max_eef_normal_change", GraphParams().max_eef_normal_change))  # the graph's own, as the squeeze's
+        self.graph_params = self.edges.meta["params"]  # what the graph checked with, as recorded
+        self.gp = recorded_params(self.graph_params)
+        self.squeeze = self.gp.squeeze
+        self.max_eef_normal_change = self.gp.max_eef_normal_change
         catches = artifacts.read_table(gd / "catches.parquet", "catches")
         self.catch = {int(n): (str(a), int(c), np.asarray(q, dtype=float)) for n, a, c, q in
                       zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
@@ -202,7 +203,7 @@ class _Context:
 
         if self._tumble_env is None:
             self._tumble_env = trajectory.make_env(self.scene, self.model, self.tables, self.robot,
-                                                   trajectory.Params(), collide=self.collide)
+                                                   trajectory.Params(), collide=self.collide, graph=self.gp)
         return trajectory.check_tumble(self._tumble_env, q, step, Xa, Xb)
 
 
@@ -316,7 +317,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
         every = max(1, int(round(0.1 / params.mpc.dt)))  # IK and collisions every 0.1 s of the motion
         sub = np.unique(np.r_[np.arange(0, len(Xr), every), len(Xr) - 1])
         ok, why, q = check_arm_motion(ctx.robot, ctx.collide, Xr[sub][None], p_c[None], n_c[None], q0,
-                                      ctx.scene.robot.ball_radius, GraphParams(), batch=True)
+                                      ctx.scene.robot.ball_radius, ctx.gp, batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
         if eef_normal_angle_change(ctx.robot, q, Xr[sub][None], n_c[None])[0] > ctx.max_eef_normal_change:
@@ -382,7 +383,7 @@ def _graph_arm_checks(ctx: _Context, G: nx.DiGraph, path: list[int], done: set) 
     p_g, n_g, q_g, pivot_sets = ctx.pivot_checks()
     pc = PivotChecks(ctx.scene, ctx.model, ctx.tables, ctx.robot, ctx.collide, ctx.X_WO, poses_ab,
                      ctx.edges["vertex"][e], np.full((len(e), 2), -1), pivot_sets, p_g, n_g, q_g)
-    gp = replace(GraphParams(), pivot_arms=True, max_eef_normal_change=ctx.max_eef_normal_change)
+    gp = replace(ctx.gp, pivot_arms=True)
     status = check_pivot_edges(pc, np.stack([ga, gb, np.arange(len(e))], axis=1), gp)
     return [(*a, str(st)) for a, st in zip(arcs, status, strict=True) if st != "ok"]
 
@@ -423,7 +424,7 @@ def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict
     sub = np.unique(np.r_[np.arange(0, len(m.t), every), len(m.t) - 1])
     q0 = np.stack([state.q["left"], state.q["right"]])[None]
     ok, why, q = check_arm_motion(ctx.robot, ctx.collide, m.X_ref[sub][None], p_c[None], n_c[None], q0,
-                                  ctx.scene.robot.ball_radius, GraphParams(), batch=True)
+                                  ctx.scene.robot.ball_radius, ctx.gp, batch=True)
     if not ok[0]:
         return False, str(why[0]), step, state
     roll, detail = _rolled(ctx, params, state, q[:, 0], m.X_ref[sub], p_c, n_c)
@@ -508,7 +509,7 @@ def _in_the_way(ctx: _Context, state: _State, idle: str, pusher: str, q_push_end
     from stages import trajectory  # it imports this module's neighbours, not this module
 
     roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
-    X = roll.poses(np.linspace(min(GraphParams().push_angle, roll.total), roll.total, samples))
+    X = roll.poses(np.linspace(min(ctx.gp.push_angle, roll.total), roll.total, samples))
     q = {idle: state.q[idle], pusher: q_push_end}
     k = ("left", "right").index(idle)
     touching = np.zeros((samples, 2), bool)
@@ -526,7 +527,7 @@ def _usp_tumble_mpc(ctx: _Context, params: Params, Xa, e0, e1, c_push: int, c_ca
     tp = trajectory.TumbleParams()
     mp = _mpc_params(ctx, params)
     roll = trajectory.roll_segments(ctx.model, Xa, e0, e1)
-    th_r = release_angle(ctx.model, roll, GraphParams())
+    th_r = release_angle(ctx.model, roll, ctx.gp)
     if roll.total < th_r + np.radians(5.0):
         return "the landing comes before the release"
     t, theta, on_p = trajectory.tumble_profile(roll, th_r, roll.total, tp, mp.dt)
@@ -720,7 +721,7 @@ class _MPCChecks:
 
 def _push_plan(ctx: _Context, Xa, Xb, e0, e1, arm):
     """The pusher's contact and joint path for a tumble (``stages.graph.pusher_motion``), or None."""
-    gp = GraphParams()
+    gp = ctx.gp
     found, c, q = pusher_motion(ctx.robot, ctx.collide, ctx.model, Xa, Xb, e0, e1, ctx.p_O, ctx.n_O,
                                 ctx.scene.robot.ball_radius, gp, push_limits(ctx.scene, gp), arms=(arm,))
     return None if found is None else (c, q)
@@ -888,7 +889,7 @@ def run(scene_path, analysis_dir, sample_dir, graph_dir, out_path, params: Param
     elapsed = time.perf_counter() - t0
     meta_params = {**{k: v for k, v in asdict(params).items() if k != "mpc_helper"},
                    "weights": asdict(scene.planner.weights), "arm_clearance": ctx.collide.link_clearance,
-                   "stick_clearance": ctx.collide.tool_clearance}
+                   "stick_clearance": ctx.collide.tool_clearance, "graph": ctx.graph_params}
     meta = artifacts.make_meta("plan", meta_params, ctx.inputs, producer)
     for s in plan["steps"]:
         for key in ("pose_from", "pose_to"):

@@ -115,7 +115,7 @@ from stages import artifacts, mpc, poses, provenance, se3, squeeze, stability, s
 from stages.artifacts import Field
 from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
-from stages.graph import push_limits, pusher_motion, release_angle, tip_angle
+from stages.graph import push_limits, pusher_motion, recorded_params, release_angle, tip_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import follow_ik, load_robot
@@ -234,7 +234,7 @@ def _ik_path(robot, arm: str, targets: np.ndarray, q0: np.ndarray, every: int, c
 
 
 def pivot_joints(robot, X_ref: np.ndarray, p_O: np.ndarray, n_O: np.ndarray, q0: np.ndarray, r: float,
-                 dt: float, sample_time: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+                 dt: float, gp: GraphParams, sample_time: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Joint paths ``(T, n)`` of the left and right arm along a pivot's reference poses ``X_ref (T, 4, 4)``.
 
     The same IK as ``pivot plan``'s check of the pivot (``stages.plan``: ``stages.graph.check_arm_motion``
@@ -245,9 +245,9 @@ def pivot_joints(robot, X_ref: np.ndarray, p_O: np.ndarray, n_O: np.ndarray, q0:
     planned joints (0.7 rad of the SDA5F's joint 5 on Exp. 1, which the arm cannot follow). The ball
     centres of the dense rows (the MPC's poses, within a millimetre of the reference) are the
     impedance's targets in execution; these joints are its posture. ``p_O, n_O (2, 3)``: contacts and
-    outward normals (O) of the left and right ball; ``r`` the ball radius (m).
+    outward normals (O) of the left and right ball; ``r`` the ball radius (m); ``gp`` the graph's
+    parameters (its IK tolerance and largest joint step).
     """
-    gp = GraphParams()
     T = len(X_ref)
     every = max(1, int(round(sample_time / dt)))
     sub = np.unique(np.r_[np.arange(0, T, every), T - 1])
@@ -606,6 +606,7 @@ class _Env:
     params: Params
     sp_margin: float = 0.005  # the analysis' (placements.parquet parameters)
     clearance: tuple = (0.0, 0.0)  # m, arm and stick, the sampler's (plan.json parameters)
+    graph: GraphParams = field(default_factory=GraphParams)  # the graph's (plan.json parameters)
     _collide: object = None
 
     @property
@@ -856,8 +857,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
     """Rows of one tumble step (module docstring, "Tumble"), appended to ``tl``; returns a summary
     (catcher, contact, mode, angles, MPC figures). Raises :class:`TumbleError` when it cannot be done."""
     P, dt, r = env.params.tumble, env.params.mpc.dt, env.r
-    robot, model = env.robot, env.model
-    gp = GraphParams()
+    robot, model, gp = env.robot, env.model, env.graph
     pusher = str(step["pusher"])
     catcher = _other(pusher)
     c_p = int(step["pusher_contact"])
@@ -1219,9 +1219,10 @@ def _free_fall(env: _Env, roll: Roll, th_c: float, dt: float, rate: float = 0.0)
 
 
 def make_env(scene, model, tables: dict, robot, params: Params, collide=None,
-             clearance: tuple[float, float] = (0.0, 0.0)) -> _Env:
+             clearance: tuple[float, float] = (0.0, 0.0), graph: GraphParams | None = None) -> _Env:
     """What the tumbles of a plan need (``collide``: the scene's checker, built on first use if None,
-    its links kept ``clearance = (arm, stick)`` (m, ``stages.sample.Params``) from the object)."""
+    its links kept ``clearance = (arm, stick)`` (m, ``stages.sample.Params``) from the object; ``graph``
+    the graph's parameters the plan was checked with, ``stages.graph.recorded_params``)."""
     con = tables["contacts"]
     mp = replace(params.mpc, mu_eef=params.friction_safety * scene.object.friction,
                  mu_table=params.friction_safety * scene.table.friction, f_max=scene.robot.max_eef_force)
@@ -1230,7 +1231,7 @@ def make_env(scene, model, tables: dict, robot, params: Params, collide=None,
                 n_O=np.stack([con["nx"], con["ny"], con["nz"]], axis=1), r=scene.robot.ball_radius,
                 inertia=np.asarray(tables["summary"]["inertia"]), mp=mp, params=params,
                 sp_margin=float(tables["placements"].meta["params"]["sp_margin"]), clearance=clearance,
-                _collide=collide)
+                graph=GraphParams() if graph is None else graph, _collide=collide)
 
 
 def make_timeline(env: _Env) -> _Timeline:
@@ -1278,7 +1279,8 @@ def plan_squeeze(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarra
     if isinstance(out, str):
         raise TumbleError("mpc_infeasible", f"step {k}: {out}")
     X, f, f_tab, errs = out
-    ql, qr = pivot_joints(env.robot, m.X_ref, p_c, n_c, np.stack([tl.q["left"], tl.q["right"]]), env.r, env.mp.dt)
+    ql, qr = pivot_joints(env.robot, m.X_ref, p_c, n_c, np.stack([tl.q["left"], tl.q["right"]]), env.r, env.mp.dt,
+                          env.graph)
     T = len(m.t)
     tl.add(k, "tumble", np.where(m.t < P.grip_time, "grip", "squeeze"), X, X_ref=m.X_ref, X_start=X_from,
            p={"left": _ball_centres(X, p_c[0], n_c[0], env.r), "right": _ball_centres(X, p_c[1], n_c[1], env.r)},
@@ -1316,8 +1318,9 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     """Dense trajectories of ``plan`` (module docstring); returns ``(columns, summary)``."""
     model, tables = load_object_model(analysis_dir)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
-    env = make_env(scene, model, tables, robot, params,
-                   clearance=clearance_of(plan.get("meta", {}).get("params", {})))
+    recorded = plan.get("meta", {}).get("params", {})
+    env = make_env(scene, model, tables, robot, params, clearance=clearance_of(recorded),
+                   graph=recorded_params(recorded.get("graph", {})))
     p_O, n_O, r, mp = env.p_O, env.n_O, env.r, env.mp
     dt = mp.dt
     f_cap = float(plan.get("meta", {}).get("params", {}).get("mpc_max_force", 1.0)) * scene.robot.max_eef_force
@@ -1361,7 +1364,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
             X = res.X_WO
             targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
             ql, qr = pivot_joints(robot, Xr, p_O[[cl, cr]], n_O[[cl, cr]], np.stack([tl.q["left"], tl.q["right"]]),
-                                  r, dt)
+                                  r, dt, env.graph)
             T = len(t)
             tl.add(k, "pivot", phase, X, X_ref=Xr, X_start=X_from, p={"left": targets[:, 0], "right": targets[:, 1]},
                    f={"left": res.f_eef_W[:, 0], "right": res.f_eef_W[:, 1]}, q={"left": ql, "right": qr},

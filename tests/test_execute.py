@@ -298,7 +298,7 @@ def test_pivot_joints_end_where_the_planners_check_of_the_pivot_ends(pivot_case)
     ok, why, q_plan = graph.check_arm_motion(robot, no_collisions, X_ref[sub][None], c["p_c"][None], c["n_O"][None],
                                              q0[None], r, graph.Params(), batch=True)
     assert ok[0], why
-    ql, qr = trajectory.pivot_joints(robot, X_ref, c["p_c"], c["n_O"], q0, r, dt)
+    ql, qr = trajectory.pivot_joints(robot, X_ref, c["p_c"], c["n_O"], q0, r, dt, graph.Params())
     assert ql.shape == qr.shape == (len(X_ref), robot.arm("left").dof)
     np.testing.assert_allclose(ql[sub], q_plan[:, 0, 0], atol=1e-12)
     np.testing.assert_allclose(qr[sub], q_plan[:, 0, 1], atol=1e-12)

@@ -186,3 +186,31 @@ def test_mpc_stage_is_continuous_within_limits_and_deterministic(ctx, tmp_path):
     p_col = np.stack([tr["lx"], tr["ly"], tr["lz"]], 1)[rows]
     assert np.linalg.norm(p_fk - p_col, axis=1).max() <= 2e-3
 
+
+
+def test_plan_and_mpc_check_with_the_parameters_the_graph_recorded(small_build, tmp_path):
+    """A graph built with other parameters than the defaults (a smaller largest joint step, a finer push
+    step, less squeeze friction) records them in its artifacts; ``pivot plan`` checks its walk with
+    those (its context reads them from ``edges.parquet``) and passes them on in ``plan.json``, from
+    which ``pivot mpc`` builds its tumbles' environment: neither falls back to ``graph.Params()``'s
+    defaults, which would silently check other motions than the graph did."""
+    from dataclasses import replace
+
+    from stages import plan, squeeze, trajectory
+
+    scene_path, b = small_build
+    gp = replace(graph.Params(), max_joint_step=0.3, push_step=np.radians(6.0),
+                 squeeze=replace(squeeze.SqueezeParams(), friction=0.5))
+    graph.run(scene_path, b / "analysis", b / "sample", tmp_path / "graph", gp)
+    ctx = plan._Context(load_scene(scene_path), b / "analysis", b / "sample", tmp_path / "graph")
+    assert ctx.gp == gp and ctx.gp != graph.Params()
+    assert ctx.squeeze.friction == 0.5 and ctx.max_eef_normal_change == gp.max_eef_normal_change
+    plan.run(scene_path, b / "analysis", b / "sample", tmp_path / "graph", tmp_path / "plan.json", plan.Params())
+    recorded = artifacts.read_json(tmp_path / "plan.json", "plan")["meta"]["params"]["graph"]
+    assert graph.recorded_params(recorded) == gp
+    model, tables = load_object_model(b / "analysis")
+    scene = load_scene(scene_path)
+    robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
+    env = trajectory.make_env(scene, model, tables, robot, trajectory.Params(),
+                              graph=graph.recorded_params(recorded))
+    assert env.graph.max_joint_step == 0.3 and env.graph.push_step == np.radians(6.0)
