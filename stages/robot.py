@@ -677,11 +677,11 @@ def follow_ik(robot: Robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, key
     E motions at once: row ``keys[k]`` of the object's poses ``X_WO (E, T, 4, 4)`` at target k.
 
     A ball on a turning object rolls across its face unless it turns with it (notes: "the ball turns
-    with the object"): over a 90 deg tumble a ball that keeps its orientation rolls 3 cm, and the stick
-    that carries it, kept level, meets the face that comes up. Here the ball's rotation about the
-    object's turning axis (its part tangent to the contact, outward normal ``n_O (E, 3)``, O) follows
-    the object's, key to key (the ball turned by the object's turn since the previous key, about that
-    axis only; both tangent parts with ``both``); spin about the normal is left to the posture.
+    with the object"): over a 90 deg tumble a ball that keeps its orientation rolls 3 cm, off a contact
+    near the edge. Here the ball's rotation about the object's turning axis (its part tangent to the
+    contact, outward normal ``n_O (E, 3)``, O) follows the object's, key to key (the ball turned by the
+    object's turn since the previous key, about that axis only; both tangent parts with ``both``); spin
+    about the normal and the stick's direction are left to the posture.
     Damped least squares with task priority (Nakamura's): the position, then that rotation error in
     its null space; geometric Jacobian, joint limits by clamping, ``iters`` iterations per key seeded
     from the previous key (one branch), from ``q0 (E, n)``. A motion's result depends on it alone.
