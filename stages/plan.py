@@ -160,8 +160,6 @@ class _Context:
         self.edges = artifacts.read_table(gd / "edges.parquet", "edges")
         self.graph_params = self.edges.meta["params"]  # what the graph checked with, as recorded
         self.gp = recorded_params(self.graph_params)
-        self.squeeze = self.gp.squeeze
-        self.max_eef_normal_change = self.gp.max_eef_normal_change
         catches = artifacts.read_table(gd / "catches.parquet", "catches")
         self.catch = {int(n): (str(a), int(c), np.asarray(q, dtype=float)) for n, a, c, q in
                       zip(catches["node_id"], catches["arm"], catches["contact"], catches["q"], strict=True)}
@@ -320,7 +318,7 @@ def _check_step(ctx: _Context, params: Params, state: _State, u: int, v: int, da
                                       ctx.scene.robot.ball_radius, ctx.gp, batch=True)
         if not ok[0]:
             return False, str(why[0]), step, state
-        if eef_normal_angle_change(ctx.robot, q, Xr[sub][None], n_c[None])[0] > ctx.max_eef_normal_change:
+        if eef_normal_angle_change(ctx.robot, q, Xr[sub][None], n_c[None])[0] > ctx.gp.max_eef_normal_change:
             return False, "eef_normal_angle", step, state
         roll, detail = _rolled(ctx, params, state, q[:, 0], Xr[sub], p_c, n_c)
         if roll is None:
@@ -418,7 +416,7 @@ def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict
     Xa, Xb = ctx.X_WO[step["pose_from"]], ctx.X_WO[step["pose_to"]]
     cl, cr = ctx.contact(g, "left"), ctx.contact(g, "right")
     p_c, n_c = ctx.p_O[[cl, cr]], ctx.n_O[[cl, cr]]
-    P = ctx.squeeze
+    P = ctx.gp.squeeze
     m = squeeze.squeeze_motion(ctx.model, Xa, (e0, e1), P, params.mpc.dt)
     every = max(1, int(round(0.1 / params.mpc.dt)))
     sub = np.unique(np.r_[np.arange(0, len(m.t), every), len(m.t) - 1])
