@@ -1321,9 +1321,7 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     recorded = plan.get("meta", {}).get("params", {})
     env = make_env(scene, model, tables, robot, params, clearance=clearance_of(recorded),
                    graph=recorded_params(recorded.get("graph", {})))
-    p_O, n_O, r, mp = env.p_O, env.n_O, env.r, env.mp
-    dt = mp.dt
-    f_cap = float(plan.get("meta", {}).get("params", {}).get("mpc_max_force", 1.0)) * scene.robot.max_eef_force
+    f_cap = float(recorded.get("mpc_max_force", 1.0)) * scene.robot.max_eef_force
     tl = make_timeline(env)
     stats = {"primitives": 0, "mpc_max_error": 0.0, "mpc_iters": [], "status": "ok", "failed_primitive": -1,
              "tumbles": [], "pivot_table_friction": [], "pivot_squeeze": []}
@@ -1334,47 +1332,11 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     for k, step in enumerate(plan["steps"]):  # a few dozen primitives
         prim = step["primitive"]
         X_from, X_to = pose_of(step, "X_WO_from"), pose_of(step, "X_WO_to")
-        if prim == "regrasp":
-            for arm in step.get("arms", []):  # in USP one at a time, the other ball holding the object alone
-                f_hold = None
-                if step["support"] == "USP" and tl.contact[_other(arm)] >= 0:
-                    f_hold = hold_force(env, X_from, tl.contact[_other(arm)])
-                    if f_hold is None:
-                        stats.update(status="unstable", failed_primitive=k,
-                                     reason=f"step {k}: the {_other(arm)} ball cannot hold the object alone")
-                        break
-                tl.move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]), f_hold=f_hold)
-            if stats["status"] != "ok":
-                break
-            if step.get("arms"):
-                tl.hold(X_from, k, params.hold)
-        elif prim == "pivot":
-            vtx = int(step["vertex"])
-            p0 = se3.transform_points(X_from, model.vertices[vtx])
-            d = poses.tilt_direction(model, X_from, vtx, scene.planner.tilt)
-            t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, params.pivot_durations,
-                                               p_com_O=model.com, tilt_dir=d)
-            cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
-            res, fs, f_min = _pivot_forces(env, f_cap, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr)
-            stats["pivot_table_friction"].append(fs)
-            stats["pivot_squeeze"].append(f_min)
-            if res.status != "ok":
-                stats.update(status="mpc_infeasible", failed_primitive=k)
-                break
-            X = res.X_WO
-            targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
-            ql, qr = pivot_joints(robot, Xr, p_O[[cl, cr]], n_O[[cl, cr]], np.stack([tl.q["left"], tl.q["right"]]),
-                                  r, dt, env.graph)
-            T = len(t)
-            tl.add(k, "pivot", phase, X, X_ref=Xr, X_start=X_from, p={"left": targets[:, 0], "right": targets[:, 1]},
-                   f={"left": res.f_eef_W[:, 0], "right": res.f_eef_W[:, 1]}, q={"left": ql, "right": qr},
-                   c={"left": np.ones(T, bool), "right": np.ones(T, bool)}, f_table=res.f_table_W)
-            tl.q["left"], tl.q["right"] = ql[-1], qr[-1]
-            tl.contact["left"], tl.contact["right"] = cl, cr
-            stats["mpc_max_error"] = max(stats["mpc_max_error"], float(np.max(res.tracking_error)))
-            stats["mpc_iters"].append(float(np.median(res.n_iter[res.n_iter >= 0])))
-            tl.hold(X_to, k, params.hold)
-        elif prim == "tumble":
+        if prim == "regrasp" and not _regrasp_rows(env, tl, k, step, X_from, stats):
+            break
+        if prim == "pivot" and not _pivot_rows(env, tl, k, step, X_from, X_to, f_cap, stats):
+            break
+        if prim == "tumble":
             try:
                 if step.get("mode") == "squeeze":
                     info = plan_squeeze(env, tl, k, step, X_from, X_to)
@@ -1397,11 +1359,64 @@ def compute(scene, analysis_dir, plan: dict, params: Params) -> tuple[dict, dict
     # fraction of the joint's velocity limit (transits run at vel_scale; a value above 1 is a jump).
     ratio = 0.0
     for a in ARMS if cols else ():
-        speed = np.abs(np.diff(np.stack(cols[f"q_{a}"]), axis=0)) / dt
+        speed = np.abs(np.diff(np.stack(cols[f"q_{a}"]), axis=0)) / env.mp.dt
         ratio = max(ratio, float(np.max(speed / robot.arm(a).velocity, initial=0.0)))
     stats["max_joint_speed_ratio"] = ratio
     stats["duration"] = float(cols["t"][-1]) if cols else 0.0
     return cols, stats
+
+
+def _regrasp_rows(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, stats: dict) -> bool:
+    """Rows of regrasp step ``k``, appended to ``tl``: the moving arms' transits (in USP one at a time,
+    the other ball holding the object alone with :func:`hold_force`), then a hold. False (and
+    ``stats`` says why) when a ball cannot hold the object alone."""
+    for arm in step.get("arms", []):
+        f_hold = None
+        if step["support"] == "USP" and tl.contact[_other(arm)] >= 0:
+            f_hold = hold_force(env, X_from, tl.contact[_other(arm)])
+            if f_hold is None:
+                stats.update(status="unstable", failed_primitive=k,
+                             reason=f"step {k}: the {_other(arm)} ball cannot hold the object alone")
+                return False
+        tl.move_arm(arm, step["transit"][arm], X_from, k, int(step["contacts"][arm]), f_hold=f_hold)
+    if step.get("arms"):
+        tl.hold(X_from, k, env.params.hold)
+    return True
+
+
+def _pivot_rows(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray, f_cap: float,
+                stats: dict) -> bool:
+    """Rows of pivot step ``k``, appended to ``tl`` (§5.2.1): the tilt -> rotate -> lower reference
+    (``mpc.pivot_reference``), its forces by the pivoting MPC within ``f_cap`` N (:func:`_pivot_forces`),
+    the joints as ``pivot plan`` checked them (:func:`pivot_joints`), then a hold. False (and ``stats``
+    says why) when the MPC finds no forces."""
+    model, scene, p_O, n_O, r, dt = env.model, env.scene, env.p_O, env.n_O, env.r, env.mp.dt
+    vtx = int(step["vertex"])
+    p0 = se3.transform_points(X_from, model.vertices[vtx])
+    d = poses.tilt_direction(model, X_from, vtx, scene.planner.tilt)
+    t, Xr, phase = mpc.pivot_reference(X_from, X_to, p0, scene.planner.tilt, dt, env.params.pivot_durations,
+                                       p_com_O=model.com, tilt_dir=d)
+    cl, cr = int(step["contacts"]["left"]), int(step["contacts"]["right"])
+    res, fs, f_min = _pivot_forces(env, f_cap, p_O[[cl, cr]], -n_O[[cl, cr]], p0, t, Xr)
+    stats["pivot_table_friction"].append(fs)
+    stats["pivot_squeeze"].append(f_min)
+    if res.status != "ok":
+        stats.update(status="mpc_infeasible", failed_primitive=k)
+        return False
+    X = res.X_WO
+    targets = np.stack([_ball_centres(X, p_O[c], n_O[c], r) for c in (cl, cr)], axis=1)
+    ql, qr = pivot_joints(env.robot, Xr, p_O[[cl, cr]], n_O[[cl, cr]], np.stack([tl.q["left"], tl.q["right"]]),
+                          r, dt, env.graph)
+    T = len(t)
+    tl.add(k, "pivot", phase, X, X_ref=Xr, X_start=X_from, p={"left": targets[:, 0], "right": targets[:, 1]},
+           f={"left": res.f_eef_W[:, 0], "right": res.f_eef_W[:, 1]}, q={"left": ql, "right": qr},
+           c={"left": np.ones(T, bool), "right": np.ones(T, bool)}, f_table=res.f_table_W)
+    tl.q["left"], tl.q["right"] = ql[-1], qr[-1]
+    tl.contact["left"], tl.contact["right"] = cl, cr
+    stats["mpc_max_error"] = max(stats["mpc_max_error"], float(np.max(res.tracking_error)))
+    stats["mpc_iters"].append(float(np.median(res.n_iter[res.n_iter >= 0])))
+    tl.hold(X_to, k, env.params.hold)
+    return True
 
 
 def _columns(c: dict) -> dict:
