@@ -282,33 +282,40 @@ def check_pivot_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np.n
     its largest is the sampler's ``pivot_vertices`` test (the stability LP, eq. 1-4, with the plan
     MPC's friction and force, ``stages.sample.Params.pivot_friction_safety`` and ``_force_safety``)."""
     status = np.full(len(cand), "ok", dtype=object)
-    scene, model, X_WO = pc.scene, pc.model, pc.X_WO
     v = pc.link_vertex[cand[:, 2]] if len(cand) else np.zeros(0, np.int64)
     piv_a = pc.pivot_sets
     for i, (ga, gb, _), vi in zip(range(len(cand)), cand.tolist(), v.tolist(), strict=True):  # set lookups
         if vi not in piv_a[ga] or vi not in piv_a[gb]:
             status[i] = "unstable"
     live = np.flatnonzero(status == "ok")
-    if len(live):
-        by_link = {}  # one reference per link (a few dozen samples), shared by its grasps
-        for li in np.unique(cand[live, 2]):
-            Xa, Xb, vtx = X_WO[pc.link_poses[li, 0]], X_WO[pc.link_poses[li, 1]], int(pc.link_vertex[li])
-            p0 = se3.transform_points(Xa, model.vertices[vtx])
-            try:
-                d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt)
-                _, by_link[li], _ = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt,
-                                                        params.check_durations, p_com_O=model.com, tilt_dir=d)
-            except InputError:  # not an exact rotation about that vertex, or no tilt onto it: no pivot edge
-                pass
-        status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
-        live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
+    by_link = _pivot_references(pc, np.unique(cand[live, 2]), params) if len(live) else {}
+    status[[i for i in live if cand[i, 2] not in by_link]] = "not_a_pivot"
+    live = np.array([i for i in live if cand[i, 2] in by_link], dtype=np.int64)
+    if len(live) and params.pivot_arms:
         trajs = [by_link[cand[i, 2]] for i in live]
-    if len(live):
         T = min(len(x) for x in trajs)
-        X_traj = np.stack([x[:T] for x in trajs])
-        if params.pivot_arms:
-            status[live] = _pivot_arms(pc, cand[live, 0], X_traj, params)
+        status[live] = _pivot_arms(pc, cand[live, 0], np.stack([x[:T] for x in trajs]), params)
     return status
+
+
+def _pivot_references(pc: PivotChecks, links: np.ndarray, params: Params) -> dict:
+    """Per pivot link of ``links`` (one per link, shared by its grasps) its tilt -> rotate -> lower
+    reference poses ``(T, 4, 4)`` (``mpc.pivot_reference``) with ``params.pivot_arms``, else its yaw and
+    tilt axis (``mpc.pivot_axes``: whether it is a pivot is all that is asked of it then); a link that
+    is no exact rotation about its vertex, or has no tilt onto it (``InputError``), is left out."""
+    scene, model, X_WO = pc.scene, pc.model, pc.X_WO
+    out = {}
+    for li in links.tolist():
+        Xa, Xb, vtx = X_WO[pc.link_poses[li, 0]], X_WO[pc.link_poses[li, 1]], int(pc.link_vertex[li])
+        p0 = se3.transform_points(Xa, model.vertices[vtx])
+        try:
+            d = poses.tilt_direction(model, Xa, vtx, scene.planner.tilt)
+            out[li] = mpc.pivot_reference(Xa, Xb, p0, scene.planner.tilt, params.check_dt, params.check_durations,
+                                          p_com_O=model.com, tilt_dir=d)[1] if params.pivot_arms else \
+                mpc.pivot_axes(Xa, Xb, p0, model.com, d)
+        except InputError:
+            pass
+    return out
 
 
 def _pivot_arms(pc: PivotChecks, g: np.ndarray, X_traj: np.ndarray, params: Params) -> np.ndarray:
@@ -380,7 +387,8 @@ def check_squeeze_edges(pc: PivotChecks, cand: np.ndarray, params: Params) -> np
     reps = np.array([len(angles[li]) for li in links], dtype=np.int64)
     g = np.repeat(cand[live, 0], reps)
     ok = squeeze.squeeze_holds(scene.object.mass, model.com, np.concatenate([X[li] for li in links]),
-                               np.concatenate([edge[li] for li in links]), pc.p_g[g], pc.n_g[g], L, sp)
+                               np.concatenate([edge[li] for li in links]), pc.p_g[g], pc.n_g[g], L, sp,
+                               params.threads)
     held = np.logical_and.reduceat(ok, np.r_[0, np.cumsum(reps)[:-1]]) if len(ok) else np.zeros(0, bool)
     status[live[~held]] = "unstable"
     live = np.flatnonzero(status == "ok")
@@ -883,7 +891,7 @@ def push_limits(scene: Scene, params: Params) -> PushLimits:
 
 
 def tip_holds(com_W: np.ndarray, edge_W: np.ndarray, p_W: np.ndarray, n_W: np.ndarray,
-              limits: PushLimits) -> np.ndarray:
+              limits: PushLimits, threads: int = 1) -> np.ndarray:
     """Whether a ball alone on each contact can start a tumble, ``(n,)`` bool: the object stays in
     equilibrium on the edge it turns about alone (its other table contacts just lifting, the hardest
     instant: the turn then brings the CoM over the edge), the ball's force in its friction cone
@@ -892,12 +900,13 @@ def tip_holds(com_W: np.ndarray, edge_W: np.ndarray, p_W: np.ndarray, n_W: np.nd
     pusher as the only EEF, as the tumbling MPC's first row is when no catcher helps (a drop, §5.2.2,
     Fig. 14). A push whose horizontal part the edge's friction cannot hold slides the object instead of
     tipping it, unless another ball holds that part.
-    ``com_W (n, 3)``, ``edge_W (n, 2, 3)``, contact points ``p_W`` and outward normals ``n_W (n, 3)``, W."""
+    ``com_W (n, 3)``, ``edge_W (n, 2, 3)``, contact points ``p_W`` and outward normals ``n_W (n, 3)``, W;
+    ``threads`` share the LPs (the same answer for any number)."""
     if not len(p_W):
         return np.zeros(0, bool)
     prm = stability.Params(mu_eef=limits.mu, mu_table=limits.mu_table, f_max=limits.f_max)
-    res = stability.evaluate(limits.weight / prm.g, com_W, edge_W, None, p_W[:, None], -n_W[:, None], None, 1.0,
-                             prm, compute_margin=False)
+    res = stability.evaluate_threaded(limits.weight / prm.g, com_W, edge_W, None, p_W[:, None], -n_W[:, None], None,
+                                      1.0, prm, compute_margin=False, threads=threads)
     return res.stable
 
 
@@ -996,7 +1005,7 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
         for acc, x in zip(tips, (np.broadcast_to(com, (len(good), 3)), np.broadcast_to(edge, (len(good), 2, 3)),
                                  p_W[good], n_W[good]), strict=True):
             acc.append(x)
-    holds = tip_holds(*(np.concatenate(x) for x in tips), limits) if found else np.zeros(0, bool)
+    holds = tip_holds(*(np.concatenate(x) for x in tips), limits, params.threads) if found else np.zeros(0, bool)
     rows, i0, n = [], 0, params.push_candidates
     for k, good, score, p_W in found:
         ok, i0 = holds[i0:i0 + len(good)], i0 + len(good)
@@ -1036,11 +1045,13 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     (``limits``) turns the object over the edge against its weight (:func:`push_levers`: no fixed cone
     about the contact's motion, which refused the push a person makes on a box's far side face), on
     the arm's side of the object, best first (``push_candidates`` per arm; :func:`_push_candidates`).
-    Every candidate of every tumble is followed along the roll (``poses.roll_segments``) to
+    A tumble's candidates are followed along the roll (``poses.roll_segments``) to
     :func:`release_angle`, where ``stages.trajectory`` lets go, with IK from a fresh solution, the ball
     turning with the object as ``stages.trajectory`` moves it (``stages.robot.follow_ik``), and
     checked for collisions, the other arm at its rest posture (its ball may meet the object: it is the
-    one that catches), in one batch per arm.
+    one that catches), in order until one works: in waves over all tumbles (1, 2, 4, ... candidates
+    of each), one batch per arm each
+    (:func:`_check_pushers`).
 
     Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left before
     right, then best first; the last rows of ``q`` may repeat the release pose's), or ``(None, reason,
@@ -1051,43 +1062,62 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     cand = _push_candidates(model, Xa, Xb, edges, pc, nc, params, limits, arms)
     rows = cand.rows
     status = np.full(len(rows), "no_pusher_contact", dtype=object)
-    q_path = [None] * len(rows)
-    for j, arm in enumerate(("left", "right")):
-        sel = np.flatnonzero(rows[:, 1] == j)
-        if len(sel) == 0:
+    q_path: list = [None] * len(rows)
+    # Each tumble's candidates in order (left before right, then best first), checked in waves of 1,
+    # 2, 4, ... a tumble's next ones while none before them worked. Each check depends on its row
+    # alone, so the first that works is the one a check of all would pick, at a fraction of the checks.
+    order = [mine[np.lexsort((rows[mine, 3], rows[mine, 1]))] for mine in
+             np.split(np.argsort(rows[:, 0], kind="stable"), np.cumsum(np.bincount(rows[:, 0], minlength=K))[:-1])]
+    pos, size = np.zeros(K, np.int64), 1
+    while wave := [order[k][pos[k]:pos[k] + size] for k in range(K) if pos[k] < len(order[k])]:
+        _check_pushers(robot, collide, cand, np.concatenate(wave), pc, nc, r, params, status, q_path)
+        for w in wave:
+            k = rows[w[0], 0]
+            pos[k] = len(order[k]) if np.any(status[w] == "ok") else pos[k] + size
+        size *= 2
+    out = []
+    for k in range(K):
+        win = [i for i in order[k] if status[i] == "ok"]
+        if win:
+            i = win[0]
+            out.append(("left" if rows[i, 1] == 0 else "right", int(rows[i, 2]), q_path[i]))
             continue
-        k, c = rows[sel, 0], rows[sel, 2]
+        if len(order[k]) == 0:
+            out.append((None, str(cand.why[k]), None))
+            continue
+        vals, counts = np.unique(np.array([str(x) for x in status[order[k]]]), return_counts=True)
+        out.append((None, str(vals[np.argmax(counts)]), None))
+    return out
+
+
+def _check_pushers(robot, collide, cand: _PushRows, sel: np.ndarray, pc, nc, r, params: Params, status: np.ndarray,
+                   q_path: list) -> None:
+    """Check the pusher candidate rows ``sel`` of ``cand`` (:func:`pusher_motions`), one batch per arm:
+    IK of the ball at the push's first pose from a fresh solution, then the push with the ball turning
+    with the object (``follow_ik``) and its collisions, the other arm at rest. Writes each row's
+    ``status`` and, where ok, its joints ``q_path`` (T, n)."""
+    rows = cand.rows
+    for j, arm in enumerate(("left", "right")):
+        s = sel[rows[sel, 1] == j]
+        if len(s) == 0:
+            continue
+        k, c = rows[s, 0], rows[s, 2]
         X0 = cand.X_push[k, 0]
         seed = robot.ik(arm, se3.transform_points(X0, pc[c] + r * nc[c]), rng=np.random.default_rng(0), restarts=1,
                         tol=params.ik_tol)
-        status[sel[~seed.ok]] = seed.reason[~seed.ok]
-        sel, k, c, q0 = sel[seed.ok], k[seed.ok], c[seed.ok], seed.q[seed.ok]
+        status[s[~seed.ok]] = seed.reason[~seed.ok]
+        s, k, c, q0 = s[seed.ok], k[seed.ok], c[seed.ok], seed.q[seed.ok]
         other = robot.arm("right" if arm == "left" else "left")
-        q0_both = np.repeat(other.q_rest[None, None], len(sel), axis=0).repeat(2, axis=1)
+        q0_both = np.repeat(other.q_rest[None, None], len(s), axis=0).repeat(2, axis=1)
         q0_both[:, j] = q0
         p_O = np.repeat(pc[c][:, None], 2, axis=1)
         n_O = np.repeat(nc[c][:, None], 2, axis=1)
         active = (True, False) if arm == "left" else (False, True)
         ok, why, q = check_arm_motion(robot, collide, cand.X_push[k], p_O, n_O, q0_both, r, params, active=active,
                                       touching=(True, True), follow=True)  # the idle ball may catch
-        status[sel] = why
+        status[s] = why
         for i in np.flatnonzero(ok):
-            q_path[sel[i]] = q[:, i, j]
-    out = []
-    for k in range(K):
-        mine = np.flatnonzero(rows[:, 0] == k)
-        order = mine[np.lexsort((rows[mine, 3], rows[mine, 1]))]
-        win = [i for i in order if status[i] == "ok"]
-        if win:
-            i = win[0]
-            out.append(("left" if rows[i, 1] == 0 else "right", int(rows[i, 2]), q_path[i]))
-            continue
-        if len(mine) == 0:
-            out.append((None, str(cand.why[k]), None))
-            continue
-        vals, counts = np.unique(np.array([str(x) for x in status[mine]]), return_counts=True)
-        out.append((None, str(vals[np.argmax(counts)]), None))
-    return out
+            q_path[s[i]] = q[:, i, j]
 
 
 NODE_FIELDS = [Field("node_id", "id"), Field("kind"), Field("pose_id", "id"), Field("grasp_id", "id"),

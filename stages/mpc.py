@@ -216,12 +216,31 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
         ``"tilt"``, ``"rotate"`` or ``"lower"`` per sample.
     """
     X_s = _as_pose(X_WO_start, "pivot_reference X_WO_start")
-    X_g = _as_pose(X_WO_goal, "pivot_reference X_WO_goal")
     p0_W = np.asarray(p0_W, dtype=float).reshape(3)
-    p_com_O = np.zeros(3) if p_com_O is None else np.asarray(p_com_O, dtype=float).reshape(3)
     durations = np.asarray(durations, dtype=float).reshape(3)
     if durations[0] <= 0.0 or durations[2] <= 0.0 or durations[1] < 0.0:
         raise InputError(f"pivot_reference: durations must be tilt > 0, rotate >= 0, lower > 0: {durations}")
+    yaw, tilt_axis = pivot_axes(X_s, X_WO_goal, p0_W, p_com_O, tilt_dir)
+    t = _sample_times(float(durations.sum()), dt)
+    t1, t2, t3 = durations
+    s_tilt = _phase_progress(t, 0.0, t1)
+    s_yaw = _phase_progress(t, t1, t2)
+    s_lower = _phase_progress(t, t1 + t2, t3)
+    X_yaw = se3.transform_about_line(p0_W, _Z, yaw * s_yaw)
+    X_tilt = se3.transform_about_line(p0_W, tilt_axis, tilt * (s_tilt - s_lower))
+    X_WO_ref = X_yaw @ X_tilt @ X_s
+    phase = np.where(t < t1, "tilt", np.where(t < t1 + t2, "rotate", "lower"))
+    return t, X_WO_ref, phase
+
+
+def pivot_axes(X_WO_start, X_WO_goal, p0_W, p_com_O=None, tilt_dir=None) -> tuple[float, np.ndarray]:
+    """The yaw (rad) and the tilt axis (W, unit) of :func:`pivot_reference`'s pivot from ``X_WO_start``
+    to ``X_WO_goal`` about the vertical through ``p0_W``; ``InputError`` when the goal is not such a
+    rotation of the start, or the tilt direction is undefined (arguments as there)."""
+    X_s = _as_pose(X_WO_start, "pivot_reference X_WO_start")
+    X_g = _as_pose(X_WO_goal, "pivot_reference X_WO_goal")
+    p0_W = np.asarray(p0_W, dtype=float).reshape(3)
+    p_com_O = np.zeros(3) if p_com_O is None else np.asarray(p_com_O, dtype=float).reshape(3)
     R_rel = X_g[:3, :3] @ X_s[:3, :3].T
     yaw = float(np.arctan2(R_rel[1, 0], R_rel[0, 0]))
     X_goal_expected = se3.transform_about_line(p0_W, _Z, yaw) @ X_s
@@ -233,18 +252,7 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
     d[2] = 0.0
     if np.linalg.norm(d) < 1e-9:
         raise InputError("pivot_reference: the CoM is above p0_W, the tilt direction is undefined")
-    tilt_axis = _cross(d / np.linalg.norm(d), _Z)
-
-    t = _sample_times(float(durations.sum()), dt)
-    t1, t2, t3 = durations
-    s_tilt = _phase_progress(t, 0.0, t1)
-    s_yaw = _phase_progress(t, t1, t2)
-    s_lower = _phase_progress(t, t1 + t2, t3)
-    X_yaw = se3.transform_about_line(p0_W, _Z, yaw * s_yaw)
-    X_tilt = se3.transform_about_line(p0_W, tilt_axis, tilt * (s_tilt - s_lower))
-    X_WO_ref = X_yaw @ X_tilt @ X_s
-    phase = np.where(t < t1, "tilt", np.where(t < t1 + t2, "rotate", "lower"))
-    return t, X_WO_ref, phase
+    return yaw, _cross(d / np.linalg.norm(d), _Z)
 
 
 def tumble_reference(X_WO_start, axis_point_W, axis_dir_W, angle: float, dt: float, duration: float):

@@ -112,16 +112,17 @@ def edge_points(model, roll: Roll, theta: np.ndarray) -> np.ndarray:
 
 
 def squeeze_holds(mass: float, com_O: np.ndarray, X: np.ndarray, edge_W: np.ndarray, p_O: np.ndarray,
-                  n_O: np.ndarray, L: float, params: stability.Params) -> np.ndarray:
+                  n_O: np.ndarray, L: float, params: stability.Params, threads: int = 1) -> np.ndarray:
     """``(N,)`` bool: whether two balls hold the object in equilibrium on its support edge.
 
     ``X (N, 4, 4)`` object poses (W), ``edge_W (N, 2, 3)`` the support edge's vertices (W, the table
     contacts), ``p_O, n_O (N, 2, 3)`` the balls' contact points and outward normals (O), ``com_O``
     the centre of mass (O), ``L`` (m) the torque scale; the stability LP of §4.3 (eq. 1-4,
-    ``stability.evaluate``) with ``params``' friction and force bound."""
+    ``stability.evaluate``) with ``params``' friction and force bound; ``threads`` share the LPs (the
+    same answer for any number)."""
     if len(X) == 0:
         return np.zeros(0, bool)
-    res = stability.evaluate(mass, se3.transform_points(X, com_O), edge_W, None,
-                             se3.transform_points(X[:, None], p_O), -se3.rotate_vectors(X[:, None], n_O), None, L,
-                             params, compute_margin=False)
+    res = stability.evaluate_threaded(mass, se3.transform_points(X, com_O), edge_W, None,
+                                      se3.transform_points(X[:, None], p_O), -se3.rotate_vectors(X[:, None], n_O),
+                                      None, L, params, compute_margin=False, threads=threads)
     return np.asarray(res.stable, bool)
