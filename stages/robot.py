@@ -1097,12 +1097,12 @@ class _Mesh:
     mesh: object  # trimesh.Trimesh, for inside tests of non-convex meshes
     coarse: object  # its simplification (stages.simplify.collision_mesh): the same inside answer for
     coarse_tol: float  # ... points farther than this (m) from the surface; 0 when it is the mesh
+    coarse_fcl: object  # fcl.CollisionObject of ``coarse`` (None when it is the mesh)
     inner: np.ndarray  # (S, 4) spheres (centre, radius) inside the solid: a capsule reaching one hits
     few: np.ndarray  # (k,) ids of hull planes facing evenly spread directions, clipped with first
 
 
 def _make_mesh(mesh, where: str) -> _Mesh:
-    import fcl
     import trimesh
 
     from stages.simplify import CollisionMesh, collision_mesh
@@ -1116,10 +1116,6 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     if len(mesh.faces) == 0:
         raise InputError(f"{where}: the mesh has no faces")
     v = np.asarray(mesh.vertices, dtype=float)
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(v), len(mesh.faces))
-    bvh.addSubModel(v, np.asarray(mesh.faces, dtype=np.int32))
-    bvh.endModel()
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = (lo + hi) / 2
     hull = mesh.convex_hull
@@ -1128,11 +1124,23 @@ def _make_mesh(mesh, where: str) -> _Mesh:
     planes = np.unique(np.round(np.column_stack([n, d]), 9), axis=0)  # coplanar hull faces merged
     convex = bool(mesh.is_watertight and abs(mesh.volume - hull.volume) <= 1e-6 * hull.volume)
     coarse = collision_mesh(mesh) if not convex else CollisionMesh(mesh, 0.0)
-    fcl_obj = fcl.CollisionObject(bvh, fcl.Transform())
+    fcl_obj = _fcl_mesh(v, mesh.faces)
     inner = _inner_spheres(coarse.mesh, coarse.tolerance, fcl_obj) if mesh.is_watertight else np.zeros((0, 4))
+    coarse_fcl = _fcl_mesh(coarse.mesh.vertices, coarse.mesh.faces) if coarse.tolerance > 0 else None
     return _Mesh(fcl_obj=fcl_obj, centre=centre, radius=float(np.linalg.norm(v - centre, axis=1).max()), lo=lo,
                  hi=hi, planes=planes, convex=convex, mesh=mesh, coarse=coarse.mesh, coarse_tol=coarse.tolerance,
-                 inner=inner, few=_spread_planes(planes))
+                 coarse_fcl=coarse_fcl, inner=inner, few=_spread_planes(planes))
+
+
+def _fcl_mesh(vertices, faces):
+    """A python-fcl BVH of the triangles, as a collision object at the identity."""
+    import fcl
+
+    bvh = fcl.BVHModel()
+    bvh.beginModel(len(vertices), len(faces))
+    bvh.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int32))
+    bvh.endModel()
+    return fcl.CollisionObject(bvh, fcl.Transform())
 
 
 def _spread_planes(planes: np.ndarray, k: int = 96) -> np.ndarray:
@@ -1654,7 +1662,9 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     (Cyrus–Beck), is empty. A capsule that reaches one of the spheres inside the solid
     (``_Mesh.inner``) collides, with no exact test. The rest, below a row's lowest such capsule, goes
     to ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row
-    already hit by a lower capsule is not tested again. A capsule with no triangle contact can still
+    already hit by a lower capsule is not tested again. A fine mesh's simplification (``_Mesh.coarse``,
+    within ``coarse_tol`` of it both ways) answers first, with the radius grown and shrunk by the
+    tolerance: a miss grown, or a hit shrunk, is the mesh's answer; only the rest meet the mesh. A capsule with no triangle contact can still
     lie wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
     mesh, trimesh's ray test otherwise). Returns one hit per colliding row, its lowest colliding
     capsule, as ``(row, capsule)`` index arrays ordered by capsule then row.
@@ -1692,19 +1702,33 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     length = np.linalg.norm(u, axis=0)
     Rz = se3.rotation_between(np.array([0.0, 0.0, 1.0]), np.where(length > 1e-12, u, [[0.0], [0.0], [1.0]]).T)
     centre = ((a + b) / 2).T
-    shapes: dict = {}  # one fcl object per capsule (its length and radius do not change with q)
+    shapes: dict = {}  # one fcl object per capsule and radius (its length and radius do not change with q)
+
+    def touches(i: int, r: float, target) -> bool:  # capsule i, radius r, posed, against ``target``
+        key = (int(c[i]), r)
+        if key not in shapes:
+            shapes[key] = fcl.CollisionObject(fcl.Sphere(r) if length[i] <= 1e-12 else fcl.Capsule(r, length[i]),
+                                              fcl.Transform())
+        shapes[key].setTransform(fcl.Transform(Rz[i], centre[i]))
+        return fcl.collide(shapes[key], target, req, fcl.CollisionResult()) > 0
+
+    # A fine mesh's simplification, whose surface is within tol of the mesh's both ways, decides alone
+    # outside a band of +-tol about the capsule's radius: the same answer as the mesh's, a few hundred
+    # triangles instead of 10^5.
+    tol = msh.coarse_tol if msh.coarse_fcl is not None else 0.0
     row_hit = np.zeros(X_OW.shape[0], bool).tolist()
     for i in np.flatnonzero(c < lowest[k]).tolist():  # capsule-major (np.nonzero)
-        ci, ki = int(c[i]), int(k[i])
+        ki = int(k[i])
         if row_hit[ki]:
             continue
-        if ci not in shapes:
-            g = fcl.Sphere(rc[i]) if length[i] <= 1e-12 else fcl.Capsule(rc[i], length[i])
-            shapes[ci] = fcl.CollisionObject(g, fcl.Transform())
-        o = shapes[ci]
-        o.setTransform(fcl.Transform(Rz[i], centre[i]))
         tested[i] = True
-        if fcl.collide(o, msh.fcl_obj, req, fcl.CollisionResult()) > 0:
+        if tol > 0.0 and rc[i] > tol:
+            if not touches(i, rc[i] + tol, msh.coarse_fcl):
+                continue
+            if touches(i, rc[i] - tol, msh.coarse_fcl):
+                hit[i] = row_hit[ki] = True
+                continue
+        if touches(i, rc[i], msh.fcl_obj):
             hit[i] = row_hit[ki] = True
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
     inside = tested & ~hit & start_in

@@ -662,3 +662,34 @@ def test_mesh_collision_geometry_is_rejected(tmp_path):
     bad.write_text(URDF.read_text().replace('<sphere radius="0.02"/>', '<mesh filename="ball.stl"/>'))
     with pytest.raises(InputError, match="bad.urdf.*mesh"):
         load_robot(bad)
+
+
+def test_a_fine_meshs_simplification_decides_its_collisions_as_the_mesh_would():
+    """On a fine curved mesh (a torus of 9,216 triangles) :func:`_mesh_hits` asks its simplification
+    (``_Mesh.coarse_fcl``, within ``coarse_tol`` of the mesh both ways) and the mesh only inside the
+    band of +-tol about a capsule's radius: the same rows and capsules as the mesh alone, on random
+    capsules and on capsules whose axis lies within the band of the surface."""
+    from dataclasses import replace
+
+    torus = trimesh.creation.torus(major_radius=0.2, minor_radius=0.06, major_sections=96, minor_sections=48)
+    msh = rb._make_mesh(torus, "torus")
+    tol = msh.coarse_tol
+    assert msh.coarse_fcl is not None and tol > 0
+    rng = np.random.default_rng(5)
+    C, m = 4, 400
+    p, face = trimesh.sample.sample_surface(torus, m, seed=5)
+    n = torus.face_normals[face]
+    radius = np.array([0.004, 0.01, 0.02, 0.03])
+    t = np.cross(n, rng.normal(size=(m, 3)))
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    mid = p[None] + n[None] * (radius[:, None, None] + rng.uniform(-tol, tol, (C, m, 1)))  # in the band
+    A = np.moveaxis(mid - 0.005 * t[None], -1, 0)
+    B = np.moveaxis(mid + 0.005 * t[None], -1, 0)
+    A[:, :, ::2] = rng.uniform(-0.3, 0.3, (3, C, m // 2))  # and random ones
+    B[:, :, ::2] = A[:, :, ::2] + rng.uniform(-0.05, 0.05, (3, C, m // 2))
+    X_OW = np.broadcast_to(np.eye(4), (m, 4, 4))
+    test = np.ones((C, m), bool)
+    got = rb._mesh_hits(msh, X_OW, A, B, radius, 0.0, test)
+    want = rb._mesh_hits(replace(msh, coarse_fcl=None), X_OW, A, B, radius, 0.0, test)
+    assert 50 < len(want[0]) < m - 50
+    assert all(np.array_equal(x, y) for x, y in zip(got, want, strict=True))
