@@ -1050,8 +1050,7 @@ def pusher_motions(robot, collide, model, Xa, Xb, edges, pc, nc, r, params: Para
     turning with the object as ``stages.trajectory`` moves it (``stages.robot.follow_ik``), and
     checked for collisions, the other arm at its rest posture (its ball may meet the object: it is the
     one that catches), in order until one works: in waves over all tumbles (1, 2, 4, ... candidates
-    of each), one batch per arm each
-    (:func:`_check_pushers`).
+    of each), one batch per arm each (:func:`_check_pushers`).
 
     Returns a list of K ``(arm, contact, q (T, n))`` for the first candidate that works (left before
     right, then best first; the last rows of ``q`` may repeat the release pose's), or ``(None, reason,

@@ -1662,15 +1662,12 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     (Cyrus–Beck), is empty. A capsule that reaches one of the spheres inside the solid
     (``_Mesh.inner``) collides, with no exact test. The rest, below a row's lowest such capsule, goes
     to ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row
-    already hit by a lower capsule is not tested again. A fine mesh's simplification (``_Mesh.coarse``,
-    within ``coarse_tol`` of it both ways) answers first, with the radius grown and shrunk by the
-    tolerance: a miss grown, or a hit shrunk, is the mesh's answer; only the rest meet the mesh. A capsule with no triangle contact can still
-    lie wholly inside the mesh, so one of its points is tested for inclusion (hull planes for a convex
-    mesh, trimesh's ray test otherwise). Returns one hit per colliding row, its lowest colliding
-    capsule, as ``(row, capsule)`` index arrays ordered by capsule then row.
+    already hit by a lower capsule is not tested again; a fine mesh's simplification answers first
+    where it can (:func:`_fcl_hits`). A capsule with no triangle contact can still lie wholly inside
+    the mesh, so one of its points is tested for inclusion (hull planes for a convex mesh, trimesh's
+    ray test otherwise). Returns one hit per colliding row, its lowest colliding capsule, as
+    ``(row, capsule)`` index arrays ordered by capsule then row.
     """
-    import fcl
-
     # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
     # mesh's bounding box grown by the capsule radius.
     R, t = np.ascontiguousarray(np.moveaxis(X_OW[:, :3, :3], 0, -1)), np.ascontiguousarray(X_OW[:, :3, 3].T)
@@ -1696,6 +1693,33 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     lowest = np.full(X_OW.shape[0], len(radius))
     np.minimum.at(lowest, k[accept], c[accept])
     hit = accept & (c == lowest[k])
+    tested = _fcl_hits(msh, a, b, rc, c, k, c < lowest[k], hit, X_OW.shape[0])
+    # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
+    inside = tested & ~hit & start_in
+    if inside.any() and not msh.convex:
+        # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
+        # surface: a simplification that moved no surface by more than rc answers alike, faster.
+        test_mesh = msh.coarse if msh.coarse_tol < rc[inside].min() else msh.mesh
+        with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
+            inside[inside] = test_mesh.contains(a[:, inside].T)
+    hit |= inside
+    # One per row: its lowest colliding capsule (the hits are in capsule-major order).
+    _, first = np.unique(k[hit], return_index=True)
+    hit = np.flatnonzero(hit)[first]
+    order = np.lexsort((k[hit], c[hit]))
+    return k[hit][order], c[hit][order]
+
+
+def _fcl_hits(msh: _Mesh, a: np.ndarray, b: np.ndarray, rc: np.ndarray, c: np.ndarray, k: np.ndarray,
+              todo: np.ndarray, hit: np.ndarray, rows: int) -> np.ndarray:
+    """:func:`_mesh_hits`' exact test: python-fcl on the capsules ``todo`` (segments ``a b (3, K)`` in the
+    mesh frame, radii ``rc``, capsule ids ``c`` and rows ``k``), capsule-major, a row's capsules no more
+    once one hits; ``hit (K,)`` is updated in place. A fine mesh's
+    simplification, whose surface is within ``coarse_tol`` of the mesh's both ways, decides alone
+    outside a band of +-tol about the capsule's radius (a miss grown by tol, a hit shrunk by it): the
+    same answer as the mesh's, on a few hundred triangles instead of 10^5. Returns ``tested (K,)``."""
+    import fcl
+
     tested = np.zeros(len(c), bool)
     req = fcl.CollisionRequest()
     u = b - a
@@ -1712,12 +1736,9 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
         shapes[key].setTransform(fcl.Transform(Rz[i], centre[i]))
         return fcl.collide(shapes[key], target, req, fcl.CollisionResult()) > 0
 
-    # A fine mesh's simplification, whose surface is within tol of the mesh's both ways, decides alone
-    # outside a band of +-tol about the capsule's radius: the same answer as the mesh's, a few hundred
-    # triangles instead of 10^5.
     tol = msh.coarse_tol if msh.coarse_fcl is not None else 0.0
-    row_hit = np.zeros(X_OW.shape[0], bool).tolist()
-    for i in np.flatnonzero(c < lowest[k]).tolist():  # capsule-major (np.nonzero)
+    row_hit = [False] * rows  # a row hit by fcl: its higher capsules are not tested
+    for i in np.flatnonzero(todo).tolist():  # capsule-major (np.nonzero)
         ki = int(k[i])
         if row_hit[ki]:
             continue
@@ -1730,20 +1751,7 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
                 continue
         if touches(i, rc[i], msh.fcl_obj):
             hit[i] = row_hit[ki] = True
-    # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
-    inside = tested & ~hit & start_in
-    if inside.any() and not msh.convex:
-        # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
-        # surface: a simplification that moved no surface by more than rc answers alike, faster.
-        test_mesh = msh.coarse if msh.coarse_tol < rc[inside].min() else msh.mesh
-        with _CONTAINS_LOCK:  # trimesh's ray test (its rtree, its caches) is not thread-safe
-            inside[inside] = test_mesh.contains(a[:, inside].T)
-    hit |= inside
-    # One per row: its lowest colliding capsule (the hits are in capsule-major order).
-    _, first = np.unique(k[hit], return_index=True)
-    hit = np.flatnonzero(hit)[first]
-    order = np.lexsort((k[hit], c[hit]))
-    return k[hit][order], c[hit][order]
+    return tested
 
 
 def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray, few: np.ndarray | None = None,
