@@ -474,3 +474,34 @@ def test_tip_holds_needs_the_edge_friction_that_balances_the_push():
     assert not graph.tip_holds(com, edge, p, n, lim)[0]
     assert graph.tip_holds(com, edge, p, n, lim._replace(mu_table=0.7))[0]
     assert not graph.tip_holds(com, edge, p, n, lim._replace(mu_table=0.7, f_max=5.0))[0]
+
+
+def test_pushers_checked_in_waves_are_the_first_that_work_in_order(monkeypatch):
+    """``pusher_motions`` checks a tumble's candidates 1, 2, 4, ... at a time until one works: it picks
+    the first that works in order (left before right, best rank first), whatever order the rows come
+    in, checks fewer rows than all, and a tumble with none checks all and reports the most common
+    failure."""
+    # (tumble, arm (0 left), contact, rank) -> the check's outcome, rows shuffled.
+    outcome = {(0, 0, 10, 0): "ik_unreachable", (0, 0, 11, 1): "env_collision:left_link_6_b/object",
+               (0, 0, 12, 2): "ok", (0, 0, 13, 3): "ok", (0, 1, 20, 0): "ok", (0, 1, 21, 1): "ok",
+               (1, 1, 30, 0): "joint_limit", (1, 1, 31, 1): "joint_limit", (1, 1, 32, 2): "ok",
+               (2, 0, 40, 0): "env_collision:left_stick/object", (2, 0, 41, 1): "ik_unreachable",
+               (2, 1, 50, 0): "ik_unreachable"}
+    rows = np.array(list(outcome))[np.random.default_rng(1).permutation(len(outcome))]
+    K = 3
+    monkeypatch.setattr(graph, "_push_candidates", lambda *a, **k: graph._PushRows(
+        rows, np.zeros((K, 1, 4, 4)), np.full(K, "no_pusher_contact", dtype=object)))
+    checked = []
+
+    def check(robot, collide, cand, sel, pc, nc, r, params, status, q_path):
+        for i in sel.tolist():
+            checked.append(i)
+            status[i] = outcome[tuple(cand.rows[i].tolist())]
+            q_path[i] = np.full((2, 1), float(cand.rows[i, 2])) if status[i] == "ok" else None
+
+    monkeypatch.setattr(graph, "_check_pushers", check)
+    out = graph.pusher_motions(None, None, None, np.zeros((K, 4, 4)), np.zeros((K, 4, 4)), np.zeros((K, 2), int),
+                               None, None, 0.02, graph.Params(), None)
+    assert [(arm, c) for arm, c, _ in out] == [("left", 12), ("right", 32), (None, "ik_unreachable")]
+    assert out[0][2][0, 0] == 12.0 and out[2][2] is None
+    assert len(checked) == len(set(checked)) < len(rows)  # no row twice, and not all of them
