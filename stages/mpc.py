@@ -235,8 +235,8 @@ def pivot_reference(X_WO_start, X_WO_goal, p0_W, tilt: float, dt: float, duratio
 
 def pivot_axes(X_WO_start, X_WO_goal, p0_W, p_com_O=None, tilt_dir=None) -> tuple[float, np.ndarray]:
     """The yaw (rad) and the tilt axis (W, unit) of :func:`pivot_reference`'s pivot from ``X_WO_start``
-    to ``X_WO_goal`` about the vertical through ``p0_W``; ``InputError`` when the goal is not such a
-    rotation of the start, or the tilt direction is undefined (arguments as there)."""
+    to ``X_WO_goal`` about the vertical through ``p0_W`` (§5.2.1, Fig. 12); ``InputError`` when the goal
+    is not such a rotation of the start, or the tilt direction is undefined (arguments as there)."""
     X_s = _as_pose(X_WO_start, "pivot_reference X_WO_start")
     X_g = _as_pose(X_WO_goal, "pivot_reference X_WO_goal")
     p0_W = np.asarray(p0_W, dtype=float).reshape(3)

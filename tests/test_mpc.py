@@ -86,6 +86,23 @@ def test_pivot_reference_rejects_goal_that_is_not_a_rotation_about_the_vertical_
         mpc.pivot_reference(X_WO0, shifted, P0_W, TILT, 0.02, DURATIONS)
 
 
+def test_pivot_axes_are_the_references_yaw_and_tilt_axis_and_refuse_what_it_refuses():
+    """``pivot_axes`` (what ``pivot graph`` asks of a pivot link when it does not sample it): the yaw
+    the reference turns by and the axis it tilts about (perpendicular to the CoM's direction, level);
+    a goal off the rotation about p0's vertical is refused as ``pivot_reference`` refuses it."""
+    yaw, axis = mpc.pivot_axes(X_WO0, _goal(), P0_W)
+    assert yaw == pytest.approx(YAW, abs=1e-12)
+    d = X_WO0[:3, 3] - P0_W
+    assert abs(axis[2]) < 1e-12 and abs(axis[:2] @ d[:2]) < 1e-12 and np.linalg.norm(axis) == pytest.approx(1.0)
+    _, X, phase = mpc.pivot_reference(X_WO0, _goal(), P0_W, TILT, 0.02, DURATIONS)
+    tilted = X[np.argmax(phase == "rotate")]  # the tilt done, the turn not begun
+    assert np.abs(tilted - se3.transform_about_line(P0_W, axis, TILT) @ X_WO0).max() < 1e-9
+    shifted = _goal().copy()
+    shifted[0, 3] += 0.01
+    with pytest.raises(InputError):
+        mpc.pivot_axes(X_WO0, shifted, P0_W)
+
+
 def test_tumble_reference_turns_about_the_edge_by_the_angle():
     edge = np.array([[A / 2, -A / 2, 0.0], [A / 2, A / 2, 0.0]])
     t, X, phase = mpc.tumble_reference(X_WO0, edge[0], [0.0, 1.0, 0.0], np.pi / 2, 0.02, 2.0)
