@@ -1402,7 +1402,7 @@ class CollisionFn:
         return out if blame else out[:2]
 
     def _check(self, q_left, q_right, X_WO, touching, mg_obj: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        arms, mg, emg = self.arms, self.margin, self.env_margin
+        arms = self.arms
         qs = [_check_q(arms[0], q_left), _check_q(arms[1], q_right, len(q_left))]
         N = len(qs[0])
         if X_WO is not None:
@@ -1415,9 +1415,22 @@ class CollisionFn:
         st = _Rows(N)
         ends = [_capsules_W(a, np.ascontiguousarray(q.T)) for a, q in zip(arms, qs, strict=True)]
         mids = [(A + B) / 2 for A, B in ends]
-        rho = self.rho
+        self._env_test(st, ends, mids)
+        self._trunk_test(st, ends, mids)
+        self._left_right_test(st, ends, mids)
+        self._intra_test(st, ends, mids)
 
-        # Environment: the table (the first box), then boxes, capsules and spheres, cylinders, meshes.
+        # The object; a touching ball is exempt.
+        if self.object is not None and X_WO is not None:
+            for s in range(len(arms)):
+                self._object_test(st, s, ends[s], X_WO, touch, mg_obj)
+        return st.alive, st.reason.astype(str), st.blame
+
+    def _env_test(self, st: _Rows, ends: list, mids: list) -> None:
+        """The arms' capsules (``ends``, per arm their ends A, B; ``mids``, their middles) against the
+        environment on the live rows of ``st``: the table (the first box), then boxes, capsules and
+        spheres, cylinders, meshes, each within ``env_margin`` -> ``env_collision``."""
+        arms, emg, rho = self.arms, self.env_margin, self.rho
         names = [np.asarray(a.cap_names) for a in arms]
         for name, Xi, h in self.boxes:
             for s, a in enumerate(arms):
@@ -1456,7 +1469,10 @@ class CollisionFn:
                                   a.cap_r, emg[s], np.ones((len(a.cap_r), len(rows)), bool))
                 st.fail(rows[k], "env_collision", names[s][c], name, s)
 
-        # Self: the trunk's boxes and capsules.
+    def _trunk_test(self, st: _Rows, ends: list, mids: list) -> None:
+        """Each arm's capsules against the trunk's boxes and capsules (the pairs that can meet), within
+        ``margin`` -> ``self_collision``."""
+        arms, mg, rho = self.arms, self.margin, self.rho
         trunk = self.static
         for s, a in enumerate(arms):
             (A, B), M, rh, r_c = ends[s], mids[s], rho[s], a.cap_r
@@ -1481,7 +1497,10 @@ class CollisionFn:
                 st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[cc[p[hit]]],
                         np.asarray(trunk.cap_names)[kk[p[hit]]], s)
 
-        # Self: left against right, only on rows whose arms' bounding boxes overlap.
+    def _left_right_test(self, st: _Rows, ends: list, mids: list) -> None:
+        """The left arm against the right, only on rows whose arms' bounding boxes overlap, within
+        ``margin`` -> ``self_collision``."""
+        arms, mg, rho = self.arms, self.margin, self.rho
         rows = st.live()
         box = [(np.min(_rows(np.minimum(A, B), rows) - a.cap_r[:, None], axis=1),
                 np.max(_rows(np.maximum(A, B), rows) + a.cap_r[:, None], axis=1))
@@ -1498,7 +1517,9 @@ class CollisionFn:
             st.fail(r[hit], "self_collision", np.asarray(arms[0].cap_names)[i[p[hit]]],
                     np.asarray(arms[1].cap_names)[j[p[hit]]], None)
 
-        # Self: within one arm.
+    def _intra_test(self, st: _Rows, ends: list, mids: list) -> None:
+        """Within one arm: the capsule pairs of ``intra_pairs``, within ``margin`` -> ``self_collision``."""
+        arms, mg, rho = self.arms, self.margin, self.rho
         for s, a in enumerate(arms):
             if not len(self.intra_pairs[s]):
                 continue
@@ -1513,12 +1534,6 @@ class CollisionFn:
                 < (a.cap_r[i[p]] + a.cap_r[j[p]] + mg) ** 2
             st.fail(r[hit], "self_collision", np.asarray(a.cap_names)[i[p[hit]]],
                     np.asarray(a.cap_names)[j[p[hit]]], s)
-
-        # The object; a touching ball is exempt.
-        if self.object is not None and X_WO is not None:
-            for s in range(len(arms)):
-                self._object_test(st, s, ends[s], X_WO, touch, mg_obj)
-        return st.alive, st.reason.astype(str), st.blame
 
     def _object_test(self, st: _Rows, s: int, ends, X_WO: np.ndarray, touch: np.ndarray, mg_obj: float) -> None:
         """Arm ``s``'s capsules against the object on the live rows: a link (the touching ball exempt)
