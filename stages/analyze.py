@@ -45,7 +45,7 @@ import trimesh
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from stages import artifacts, se3, stagelog, tol
+from stages import artifacts, fclmesh, se3, stagelog, tol
 from stages.artifacts import Field
 from stages.errors import InputError
 from stages.meshfile import load_mesh
@@ -568,12 +568,8 @@ def _fcl_mesh(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
     f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
     key = hashlib.sha256(v.tobytes() + b"|" + f.tobytes()).hexdigest()
     if key not in _BVH:
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(v), len(f))
-        bvh.addSubModel(v, f)
-        bvh.endModel()
         _BVH.clear()  # the last mesh's only: one analysis at a time
-        _BVH[key] = bvh
+        _BVH[key] = fclmesh.bvh(v, f)
     return fcl.CollisionObject(_BVH[key], fcl.Transform())
 
 

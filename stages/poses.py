@@ -58,7 +58,7 @@ import networkx as nx
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from stages import connect, mpc, se3
+from stages import connect, fclmesh, mpc, se3
 from stages.analyze import _polygon_margins
 from stages.errors import InputError
 
@@ -1136,11 +1136,7 @@ def _object_fcl(model: ObjectModel) -> fcl.CollisionObject:
     """The object mesh as an fcl collision object (at the identity); its hierarchy is built once per
     model (seconds on a 200k-triangle mesh), each call gets its own object to move."""
     if not model.bvh:
-        bvh = fcl.BVHModel()
-        bvh.beginModel(len(model.mesh_vertices), len(model.mesh_faces))
-        bvh.addSubModel(np.asarray(model.mesh_vertices, float), np.asarray(model.mesh_faces, np.int32))
-        bvh.endModel()
-        model.bvh.append(bvh)
+        model.bvh.append(fclmesh.bvh(model.mesh_vertices, model.mesh_faces))
     return fcl.CollisionObject(model.bvh[0], fcl.Transform())
 
 
@@ -1183,10 +1179,7 @@ def fcl_object(ob, grow: float = 0.0) -> fcl.CollisionObject:
     elif ob.kind == "cylinder":
         geom = fcl.Cylinder(ob.radius + grow, ob.height + 2 * grow)
     else:
-        geom = fcl.BVHModel()
-        geom.beginModel(len(ob.vertices), len(ob.faces))
-        geom.addSubModel(np.asarray(ob.vertices, float), np.asarray(ob.faces, np.int32))
-        geom.endModel()
+        geom = fclmesh.bvh(ob.vertices, ob.faces)
     X = np.asarray(ob.X_WOb, dtype=float)
     return fcl.CollisionObject(geom, fcl.Transform(X[:3, :3], X[:3, 3]))
 

@@ -1133,14 +1133,12 @@ def _make_mesh(mesh, where: str) -> _Mesh:
 
 
 def _fcl_mesh(vertices, faces):
-    """A python-fcl BVH of the triangles, as a collision object at the identity."""
+    """A python-fcl BVH of the triangles (``stages.fclmesh``), as a collision object at the identity."""
     import fcl
 
-    bvh = fcl.BVHModel()
-    bvh.beginModel(len(vertices), len(faces))
-    bvh.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int32))
-    bvh.endModel()
-    return fcl.CollisionObject(bvh, fcl.Transform())
+    from stages import fclmesh
+
+    return fcl.CollisionObject(fclmesh.bvh(vertices, faces), fcl.Transform())
 
 
 def _spread_planes(planes: np.ndarray, k: int = 96) -> np.ndarray:
