@@ -41,6 +41,7 @@ continuous from the start yaw, so the last pose equals the goal up to the tolera
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -169,13 +170,16 @@ def apply_pivots(pose: np.ndarray, corners: np.ndarray, ids: np.ndarray, angles:
     return out
 
 
+@functools.lru_cache(maxsize=64)
 def corner_sequences(k: int, n: int) -> np.ndarray:
     """All corner sequences ``(N, n)`` of length ``n`` over ``k`` corners without a repeat in a row.
 
-    Lexicographic order: ``(0, 1, 0), (0, 1, 2), ...``.
+    Lexicographic order: ``(0, 1, 0), (0, 1, 2), ...``. Made once per ``(k, n)`` and read-only.
     """
-    seqs = [s for s in itertools.product(range(k), repeat=n) if all(a != b for a, b in itertools.pairwise(s))]
-    return np.array(seqs, dtype=int).reshape(len(seqs), n)
+    seqs = np.array(list(itertools.product(range(k), repeat=n)), dtype=int).reshape(-1, n)
+    seqs = seqs[np.all(seqs[:, 1:] != seqs[:, :-1], axis=1)]
+    seqs.flags.writeable = False
+    return seqs
 
 
 def solve_pivot_angles(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray,
@@ -318,26 +322,25 @@ def connect_planar(pose_a: np.ndarray, pose_b: np.ndarray, corners: np.ndarray,
         return Connection(True, np.zeros(0, dtype=int), np.zeros(0), pose_a[None].copy(), 0.0, "")
     k = len(corners)
     for m in range(1, params.max_pivots + 1):
-        found: list[tuple[float, np.ndarray, np.ndarray]] = []
+        cost, ids, ang = [], [], []  # of every sequence that reaches pose_b, in enumeration order
         for runs in _compositions(m, params.alternate):
             seqs = corner_sequences(k, len(runs))
             if len(seqs) == 0:
                 continue
             limit = params.max_angle * np.array(runs, dtype=float)
-            ang = solve_pivot_angles(pose_a, pose_b, corners, seqs)  # (N, B, n)
-            ok = np.all(np.abs(ang) <= limit + _ANGLE_SLACK, axis=-1)  # NaN compares False
-            ang = np.clip(ang, -limit, limit)
-            ids = np.broadcast_to(seqs[:, None, :], ang.shape)
-            end = apply_pivots(pose_a, corners, ids, ang)[..., -1, :]
-            ok &= reaches(end)
-            for i, b in zip(*np.nonzero(ok), strict=True):
-                # A run of r pivots about one corner: r equal turns.
-                found.append((float(np.sum(np.abs(ang[i, b]))),
-                              np.repeat(seqs[i], runs), np.repeat(ang[i, b] / np.array(runs), runs)))
-        if found:
-            cost, ids, ang = found[_pick(np.array([f[0] for f in found]),
-                                         np.array([np.sum(f[2] ** 2) for f in found]))]
-            return Connection(True, ids, ang, apply_pivots(pose_a, corners, ids, ang), cost, "")
+            a = solve_pivot_angles(pose_a, pose_b, corners, seqs)  # (N, B, n)
+            ok = np.all(np.abs(a) <= limit + _ANGLE_SLACK, axis=-1)  # NaN compares False
+            a = np.clip(a, -limit, limit)
+            end = apply_pivots(pose_a, corners, np.broadcast_to(seqs[:, None, :], a.shape), a)[..., -1, :]
+            i, b = np.nonzero(ok & reaches(end))
+            cost.append(np.sum(np.abs(a[i, b]), axis=1))
+            # A run of r pivots about one corner: r equal turns.
+            ids.append(np.repeat(seqs[i], runs, axis=1))
+            ang.append(np.repeat(a[i, b] / np.array(runs), runs, axis=1))
+        if sum(len(c) for c in cost):
+            cost, ids, ang = np.concatenate(cost), np.concatenate(ids), np.concatenate(ang)
+            j = _pick(cost, np.sum(ang**2, axis=1))
+            return Connection(True, ids[j], ang[j], apply_pivots(pose_a, corners, ids[j], ang[j]), float(cost[j]), "")
     return _failure(pose_a, NO_SEQUENCE)
 
 
