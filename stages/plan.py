@@ -447,11 +447,25 @@ def _check_squeeze_step(ctx: _Context, params: Params, state: _State, data: dict
 
 
 def _check_tumble_step(ctx: _Context, params: Params, state: _State, u: int, v: int, data: dict, step: dict):
-    """:func:`_check_step` of a tumble: the pusher, the transits of both arms, and the whole tumble as
-    the motion stage will do it (``Params.check_tumble``); into USP the catch's MPC as well."""
+    """:func:`_check_step` of a tumble: with the graph's pusher (its first that works, the left arm's
+    before the right's), then, into SP, with the other arm's first pusher, which swaps the catcher as
+    well: where the object lands out of one arm's reach or across its links, the other may catch it.
+    The first failure stands when neither works (:func:`_check_tumble_with`)."""
+    pusher = str(ctx.edges["arm"][data["edge_id"]])
+    first = _check_tumble_with(ctx, params, state, v, data, dict(step), pusher)
+    if first[0] or ctx.nodes["kind"][v] == "catch":  # into USP the catch node names the catcher
+        return first
+    other = "right" if pusher == "left" else "left"
+    swapped = _check_tumble_with(ctx, params, state, v, data, dict(step), other)
+    return swapped if swapped[0] else first
+
+
+def _check_tumble_with(ctx: _Context, params: Params, state: _State, v: int, data: dict, step: dict, pusher: str):
+    """:func:`_check_tumble_step` with ``pusher``'s arm: its pusher (``stages.graph.pusher_motion``),
+    the transits of both arms, and the whole tumble as the motion stage will do it
+    (``Params.check_tumble``); into USP the catch's MPC as well."""
     nodes = ctx.nodes
     e0, e1 = int(ctx.edges["edge_v0"][data["edge_id"]]), int(ctx.edges["edge_v1"][data["edge_id"]])
-    pusher = str(ctx.edges["arm"][data["edge_id"]])
     Xa, Xb = ctx.X_WO[step["pose_from"]], ctx.X_WO[step["pose_to"]]
     found = _push_plan(ctx, Xa, Xb, e0, e1, pusher)
     if found is None:

@@ -384,15 +384,44 @@ def test_a_tumble_the_motion_stage_cannot_do_is_backtracked_in_the_search(builds
     asked = []
 
     def refuse(env, q, step, X_from, X_to):
-        asked.append(step["edge"])
+        asked.append((tuple(step["edge"]), step["pusher"]))
         return "no_catcher", "step 0: no catcher works (made to fail)"
 
     monkeypatch.setattr(trajectory, "check_tumble", refuse)
     p = plan.run(builds.scene("exp3_obstacle"), builds.analysis, b / "sample", b / "graph", tmp_path / "plan.json",
                  plan.Params())
     assert asked and any(e["primitive"] == "tumble" and e["reason"] == "no_catcher" for e in p["log"])
+    assert {arm for _, arm in asked} == {"left", "right"}  # each arm pushed before the edge went
     tumbles = [st for st in p["steps"] if st["primitive"] == "tumble"]
     assert p["status"] == "ok" and tumbles and all(st["mode"] == "squeeze" for st in tumbles)
+
+
+def test_a_tumble_refused_with_the_graphs_pusher_is_tried_with_the_other_arm(builds, tmp_path, monkeypatch):
+    """A pushed tumble into SP that ``trajectory.check_tumble`` refuses with the graph's pusher is
+    checked with the other arm pushing (so the first arm catching) before its edge is removed. Made
+    to: every tumble pushed by the arm the search asks first is refused, every other accepted; the
+    next question is the same tumble with the other arm (its own first pusher, found by the graph's
+    code), and the plan pushes that tumble with it. (Exp. 3's real check refuses both arms there.)"""
+    from stages import trajectory
+
+    b = builds.build("exp3_obstacle")
+    asked = []
+
+    def refuse_the_first_arm(env, q, step, X_from, X_to):
+        asked.append((tuple(step["edge"]), step["pusher"]))
+        if step["pusher"] == asked[0][1]:
+            return "no_catcher", "step 0: no catcher works (made to fail)"
+        return "ok", ""
+
+    monkeypatch.setattr(trajectory, "check_tumble", refuse_the_first_arm)
+    p = plan.run(builds.scene("exp3_obstacle"), builds.analysis, b / "sample", b / "graph", tmp_path / "plan.json",
+                 plan.Params())
+    first = asked[0][1]
+    other = "right" if first == "left" else "left"
+    assert asked[1] == (asked[0][0], other)
+    pushed = [st for st in p["steps"] if st["primitive"] == "tumble" and st["pusher"] != "both"]
+    assert p["status"] == "ok" and [(tuple(st["edge"]), st["pusher"]) for st in pushed] == [asked[1]]
+    assert not any(e["primitive"] == "tumble" for e in p["log"])  # the refusal removed no edge
 
 
 def test_a_pivot_whose_ball_has_rolled_to_its_faces_edge_is_refused(builds):
