@@ -685,7 +685,7 @@ def catch_candidates(scene: Scene, model, tables, robot, collide, X_WO, placemen
         rel = p_O[cand] - model.vertices[e0]
         lever = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
         off = np.abs((p_O[cand] - model.com) @ axis)
-        best = _spread(cand[np.lexsort((cand, -(lever - 0.5 * off)))], params.catch_candidates)
+        best = spread(cand[np.lexsort((cand, -(lever - 0.5 * off)))], params.catch_candidates)
         for arm in ("left", "right"):
             rows.update(dict.fromkeys((b, arm, int(c)) for c in best))
             # ... and every such contact that is the arm's contact of a grasp of the landing pose: the
@@ -1016,7 +1016,7 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
                 continue
             side = p_W[ranked, 1] >= Xa[k][1, 3] if arm == "left" else p_W[ranked, 1] <= Xa[k][1, 3]
             r, t = ranked[side], tip[side]
-            pick = np.concatenate([_spread(r[t], n), _spread(r[~t], max(n - int(t.sum()), 0))])
+            pick = np.concatenate([spread(r[t], n), spread(r[~t], max(n - int(t.sum()), 0))])
             rows += [(k, j, int(c), rank) for rank, c in enumerate(pick)]
     S = max([len(x) for x in pushes if x is not None], default=1)
     X_push = np.zeros((K, S, 4, 4))
@@ -1026,7 +1026,7 @@ def _push_candidates(model, Xa, Xb, edges, pc, nc, params: Params, limits: PushL
     return _PushRows(np.array(rows, dtype=np.int64).reshape(-1, 4), X_push, why)
 
 
-def _spread(ranked: np.ndarray, n: int) -> np.ndarray:
+def spread(ranked: np.ndarray, n: int) -> np.ndarray:
     """``n`` of the ``ranked`` candidates, best first, evenly spaced in rank: neighbouring contacts
     of one face rank alike and fail alike (the same reach, the same collision), so the best ``n`` are
     one bet where the spread are ``n``."""

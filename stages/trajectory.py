@@ -115,7 +115,7 @@ from stages import artifacts, mpc, poses, provenance, se3, squeeze, stability, s
 from stages.artifacts import Field
 from stages.errors import InputError, about
 from stages.graph import Params as GraphParams
-from stages.graph import push_limits, pusher_motion, recorded_params, release_angle, tip_angle
+from stages.graph import push_limits, pusher_motion, recorded_params, release_angle, spread, tip_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
 from stages.robot import follow_ik, load_robot
@@ -146,7 +146,8 @@ class TumbleParams:
     table_clearance: float = 0.003
     #: A catcher placing the object must end at least this far beyond the table's edge (m).
     edge_clearance: float = 0.005
-    #: Catching contacts: outward normal within this angle of the landing direction; candidates tried.
+    #: Catching contacts: outward normal within this angle of the landing direction; candidates tried:
+    #: the best ``catch_candidates``, then as many more spread over the rest of the ranking.
     catch_cone: float = np.radians(30.0)
     catch_candidates: int = 8
     #: Where the catcher's ball has rolled to at the end of the catch must lie this far inside its face (m).
@@ -646,8 +647,10 @@ def _contact_at(env: _Env, arm: str, q: np.ndarray, X: np.ndarray, where: str) -
 def _catch_candidates(env: _Env, roll: Roll, catcher: str, th_r: float, params: TumbleParams) -> np.ndarray:
     """Contact ids on the landing face, best catcher first (module docstring), of those whose ball the
     ``catcher`` arm reaches (IK of the ball centre) both at the start and at the release angle ``th_r``:
-    it holds the object all the way between, whatever its mode. (Ranked first and checked after, the
-    few best were often out of reach where the object tips away from the robot, and no other was tried.)"""
+    it holds the object all the way between, whatever its mode. The best ``catch_candidates``, then as
+    many spread evenly over the rest of the ranking (``stages.graph.spread``): neighbouring contacts
+    rank alike and fail alike (one link across the object, one IK limit), so when the best all fail
+    the next ones are tried far apart on the face."""
     d_O = roll.X_end[2, :3] * -1.0  # the landing direction (W -z) in O: R^T (0, 0, -1)
     cand = np.flatnonzero(env.n_O @ d_O >= np.cos(params.catch_cone))
     X0 = roll.X_seg[0]
@@ -662,8 +665,8 @@ def _catch_candidates(env: _Env, roll: Roll, catcher: str, th_r: float, params: 
     X = roll.poses([0.0, th_r])
     balls = np.concatenate([se3.transform_points(X[0], ball_O), se3.transform_points(X[1], ball_O)])
     res = env.robot.ik(catcher, balls, rng=np.random.default_rng(0))
-    reach = res.ok.reshape(2, -1).all(axis=0)
-    return cand[reach][: params.catch_candidates]
+    ranked, n = cand[res.ok.reshape(2, -1).all(axis=0)], params.catch_candidates
+    return np.concatenate([ranked[:n], spread(ranked[n:], n)])
 
 
 def _collision_free(env: _Env, q_l, q_r, X, touching, every: int) -> tuple[bool, str]:

@@ -1015,7 +1015,8 @@ def test_catch_candidates_are_those_the_catcher_reaches_at_the_start_and_the_rel
     """The benchmark's box lying flat, tipped over its far edge (away from the robot): the left arm's
     candidates are landing-face contacts whose ball it reaches at the start and at the release angle,
     and contacts it cannot reach that rank above the last of them (lever less half the offset from the
-    CoM) are left out: ranked first and checked after, they took the candidates' places."""
+    CoM) are left out: ranked first and checked after, they took the candidates' places. The best
+    ``catch_candidates`` come first, then as many spread over the rest of the ranking, each below them."""
     from stages import analyze, graph, poses, trajectory
     from stages.objectmodel import load_object_model
     from tests.conftest import write_scene
@@ -1035,7 +1036,7 @@ def test_catch_candidates_are_those_the_catcher_reaches_at_the_start_and_the_rel
     th_r = graph.release_angle(model, roll, graph.Params())
     P = trajectory.TumbleParams()
     got = trajectory._catch_candidates(env, roll, "left", th_r, P)
-    assert len(got) == P.catch_candidates
+    n = P.catch_candidates
 
     landing = np.flatnonzero(env.n_O @ -roll.X_end[2, :3] >= np.cos(P.catch_cone))
     balls = env.p_O[landing] + env.r * env.n_O[landing]
@@ -1046,7 +1047,11 @@ def test_catch_candidates_are_those_the_catcher_reaches_at_the_start_and_the_rel
     a_O = X0[:3, :3].T @ roll.a_axis[0]
     rel = env.p_O - se3.transform_points(se3.invert(X0), roll.p_axis[0])
     key = np.linalg.norm(rel - np.outer(rel @ a_O, a_O), axis=1) - 0.5 * np.abs((env.p_O - model.com) @ a_O)
-    assert np.any(key[landing[~ok]] > key[got[-1]])
+    assert np.any(key[landing[~ok]] > key[got[n - 1]])
+    assert ok.sum() > 2 * n and len(got) == 2 * n  # the best n, then n more from the rest
+    assert np.all(np.diff(key[got[:n]]) <= 0) and key[got[n:]].max() <= key[got[n - 1]]
+    rest = landing[ok][np.lexsort((landing[ok], -key[landing[ok]]))][n:]
+    assert got[n] == rest[0] and got[-1] == rest[-1]  # spread from the next best to the last
 
 
 def test_a_lone_hold_pushes_a_multiple_of_the_least_force(piano_analysis):

@@ -291,11 +291,11 @@ def test_pivot_edges_are_the_same_whatever_the_batch_size(small_build, tmp_path)
 
 
 def test_spread_takes_the_best_and_then_candidates_evenly_down_the_ranking():
-    from stages.graph import _spread
+    from stages.graph import spread
 
     ranked = np.arange(100, 120)
-    assert _spread(ranked, 5).tolist() == [100, 105, 110, 114, 119]
-    assert _spread(ranked[:3], 5).tolist() == [100, 101, 102]  # fewer than asked: all of them
+    assert spread(ranked, 5).tolist() == [100, 105, 110, 114, 119]
+    assert spread(ranked[:3], 5).tolist() == [100, 101, 102]  # fewer than asked: all of them
 
 
 def test_eef_normal_angle_change_is_the_turn_of_the_tool_against_the_normal():
