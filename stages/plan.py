@@ -21,7 +21,9 @@ robot's actual joint configuration along (it starts at the home posture, all joi
   graph's checks start from the grasp's own joints, so removing the edge for that state loses it).
 - **tumble**: the pusher's transit to its contact, and the push along the rotation. Into SP, when the
   object would fall onto the other arm where the last grasp left it, that arm first goes to its rest
-  posture (``{other}_before``), where the graph's pusher check has it. Into USP (a catch node,
+  posture (``{other}_before``), where the graph's pusher check has it; a tumble into SP that fails
+  with the graph's pusher (the left arm's first, when it has one) is checked with the other arm's
+  pushing and the first arm catching before its edge is removed (our addition). Into USP (a catch node,
   Fig. 18 b–d) the catcher first moves to its catching configuration while the object still stands
   (``{catcher}_before``), the tumbling MPC must lower the object onto it and hold it there
   (:func:`_usp_tumble_mpc`), and after the push the catcher holds the object alone; the hand-over
