@@ -70,6 +70,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 import piqp
@@ -1061,18 +1062,29 @@ class _Layout:
         return ((self.weights > 0.0).T.astype(float) @ mask.astype(float)) > 0.0
 
 
-def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) -> MPCResult:
-    t_start = time.perf_counter()
-    T = len(t)
-    N, dt, nr = params.horizon, params.dt, model.n_rot
-    nx = 2 * nr
-    # Every reference pose must keep the support in place.
+class _Reference(NamedTuple):
+    """The reference padded by ``N + 1`` copies of its last pose (§5.2, eq. 7-10 along it): rotations
+    ``R (T + N + 1, 3, 3)`` (W), the nominal terms, the stage matrices without the force terms
+    (``base``) and their change per unit force (``tensors``), the rates ``nu`` in the model's
+    coordinates, and the table rows' terms along it (``G``: :func:`_reaction_terms`, framed by
+    ``H_table``)."""
+
+    R: np.ndarray
+    terms: dict
+    base: LinearStages
+    tensors: tuple
+    nu: np.ndarray
+    G: list
+
+
+def _reference(model: RotationModel, p_support_W, X_ref, H_table, params: Params) -> _Reference:
+    """:class:`_Reference` of ``X_ref (T, 4, 4)``; refuses a reference that moves the table support."""
+    N, dt = params.horizon, params.dt
     p_sup_O = se3.transform_points(se3.invert(X_ref[0]), p_support_W)
     drift = np.abs(se3.transform_points(X_ref[:, None], p_sup_O[None]) - p_support_W).max()
     if drift > SUPPORT_TOL:
         raise InputError(f"mpc: the reference moves the table support by {drift:.3g} m")
-
-    # Reference padded by holding its last pose; increments and central-difference rates (W).
+    # Increments and central-difference rates (W).
     R_ref = np.concatenate([X_ref[:, :3, :3], np.broadcast_to(X_ref[-1, :3, :3], (N + 1, 3, 3))])
     phi_ref = np.zeros((len(R_ref), 3))
     phi_ref[:-1] = Rotation.from_matrix(R_ref[1:] @ np.swapaxes(R_ref[:-1], -1, -2)).as_rotvec()
@@ -1080,44 +1092,52 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
     omega_ref[0] = phi_ref[0] / dt
     omega_ref[1:] = 0.5 * (phi_ref[:-1] + phi_ref[1:]) / dt
     # Stage models along the whole reference, once; per step only the nominal-force terms change.
-    ref_terms = _nominal_terms(model, R_ref, omega_ref)
-    ref_base, ref_Q = _base_stages(ref_terms, phi_ref, dt, np.ones(len(R_ref), dtype=bool))
-    ref_tensors = _force_term_tensors(ref_terms, ref_Q, dt)
-    nu_ref = np.einsum("nji,nj->ni", ref_terms["P"], omega_ref)
-    # Pyramids framed at the first reference pose (as the stability check frames them): the
-    # table's per support vertex in W, the EEFs' in O.
-    X0 = X_ref[0]
+    terms = _nominal_terms(model, R_ref, omega_ref)
+    base, Q = _base_stages(terms, phi_ref, dt, np.ones(len(R_ref), dtype=bool))
+    nu = np.einsum("nji,nj->ni", terms["P"], omega_ref)
+    # Table rows along the reference: H_table (G_nu nu' + G_u u + g_0 + s e) <= 0.
+    G = [np.einsum("vri,nvi...->nvr...", H_table, g) for g in _reaction_terms(model, R_ref, omega_ref)]
+    return _Reference(R_ref, terms, base, _force_term_tensors(terms, Q, dt), nu, G)
+
+
+def _pyramids(model: RotationModel, X0, p_support_W, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Friction pyramids framed at the first reference pose ``X0`` (as the stability check frames
+    them): the table's per support vertex ``(nv, 6, 3)`` (W), and the EEFs' rows ``(2, 7, 3)`` (O):
+    the pyramid (6 rows <= 0) and the normal force row (``f_min <= n . f <= f_max``)."""
     com0_W = se3.transform_points(X0, model.p_A_O + model.r_com_O)
     H_table = friction_pyramid_halfspaces(np.broadcast_to(_Z, p_support_W.shape), params.mu_table,
-                                          radial=p_support_W - com0_W)  # (nv, 6, 3)
+                                          radial=p_support_W - com0_W)
     H_eef_W = friction_pyramid_halfspaces(se3.rotate_vectors(X0, model.n_eef_O), params.mu_eef,
                                           radial=se3.rotate_vectors(X0, model.r_eef_O - model.r_com_O))
-    # Table rows along the reference: H_table (G_nu nu' + G_u u + g_0 + s e) <= 0.
-    ref_G = [np.einsum("vri,nvi...->nvr...", H_table, G) for G in _reaction_terms(model, R_ref, omega_ref)]
-    mask_pad = np.concatenate([mask, np.broadcast_to(mask[-1], (N + 1, 2))])
+    return H_table, np.concatenate([H_eef_W @ X0[:3, :3], model.n_eef_O[:, None, :]], axis=1)
 
-    lay = _Layout(N, params.block, model.edge_O is not None)
-    W_cost = np.tile(np.concatenate([np.full(nr, params.alpha), np.full(nr, params.alpha_rate)]), N)
-    # EEF rows are constant in O: pyramid (6 rows <= 0) and f_min <= n . f <= f_max.
-    H_eef = np.concatenate([H_eef_W @ X0[:3, :3], model.n_eef_O[:, None, :]], axis=1)  # (2, 7, 3), O
-    hl_eef1 = np.r_[np.full(6, -np.inf), params.f_min]
-    hu_eef1 = np.r_[np.zeros(6), params.f_max]
-    j0 = lay.knots[1:]  # knots after the first: the table rows along the prediction
-    base_A, base_B, base_D = ref_base.A, ref_base.B, ref_base.D
-    TA, TD, TMa = ref_tensors
-    # What step k needs at its later knots' stages k + j0, gathered for every k at once.
+
+class _Schedules(NamedTuple):
+    """What the contact schedule of each step's horizon fixes (:func:`_schedules`): ``keys[k]`` names
+    step k's schedule, ``by_key`` its input maps ``U``, input cost, EEF rows and their bounds and
+    ``U_0``; ``BBU``, ``NaU``, ``HuU`` the products of ``U`` with the reference's stage matrices
+    (``B_j U_j`` of each stage, ``Na U`` and the table rows' u part at the later knots)."""
+
+    keys: list
+    by_key: dict
+    BBU: np.ndarray
+    NaU: np.ndarray
+    HuU: np.ndarray
+
+
+def _schedules(lay: _Layout, ref: _Reference, mask_pad, j0, H_eef, T: int, n_tab: int, params: Params) -> _Schedules:
+    """:class:`_Schedules` for the ``T`` steps, each distinct schedule once, the products for all
+    steps at once."""
+    N, nx, nr = params.horizon, ref.base.A.shape[1], ref.nu.shape[1]
+    hl_eef1, hu_eef1 = np.r_[np.full(6, -np.inf), params.f_min], np.r_[np.zeros(6), params.f_max]
     kj = np.arange(T)[:, None] + j0
-    Ma_kj, TMa_kj, Na_kj, ca_kj = ref_base.Ma[kj], TMa[kj], ref_base.Na[kj], ref_base.ca[kj]
-    G_kj = [G[kj] for G in ref_G]
-    # The contact schedule over each step's horizon fixes the input maps U and what follows from them
-    # alone; the products of U with the reference's stage matrices are taken for all steps at once.
+    Na_kj, Gu_kj = ref.base.Na[kj], ref.G[1][kj]
     windows = [mask_pad[k:k + N] for k in range(T)]
     keys = [m.tobytes() for m in windows]
-    n_tab = lay.nk * model.n_support * 6  # table rows
-    by_mask: dict = {}
-    BBU = np.empty((T, N, nx, lay.nz))  # B_j U_j of step k's stages
-    NaU = np.empty((T, len(j0), nr, lay.nz))  # Na U at its later knots
-    HuU = np.empty((T, len(j0), model.n_support, 6, lay.nz))  # the table rows' u part there
+    by_key: dict = {}
+    BBU = np.empty((T, N, nx, lay.nz))
+    NaU = np.empty((T, len(j0), nr, lay.nz))
+    HuU = np.empty((T, len(j0), Gu_kj.shape[2], 6, lay.nz))
     for key in dict.fromkeys(keys):  # each distinct schedule, once
         ks = np.array([k for k in range(T) if keys[k] == key])
         m_st = windows[ks[0]]
@@ -1129,121 +1149,153 @@ def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) 
         G_eef = np.zeros((len(bb), 7, lay.nz))
         cols = (6 * bb + 3 * ii)[:, None] + np.arange(3)
         G_eef[np.arange(len(bb))[:, None, None], np.arange(7)[None, :, None], cols[:, None, :]] = H_eef[ii]
-        by_mask[key] = (U, params.beta * (U2.T @ U2), G_eef.reshape(-1, lay.nz),
-                        np.concatenate([np.tile(hl_eef1, len(bb)), np.full(n_tab, -np.inf)]),
-                        np.tile(hu_eef1, len(bb)), U[0])
-        BBU[ks] = base_B[ks[:, None] + np.arange(N)] @ U
+        by_key[key] = (U, params.beta * (U2.T @ U2), G_eef.reshape(-1, lay.nz),
+                       np.concatenate([np.tile(hl_eef1, len(bb)), np.full(n_tab, -np.inf)]),
+                       np.tile(hu_eef1, len(bb)), U[0])
+        BBU[ks] = ref.base.B[ks[:, None] + np.arange(N)] @ U
         NaU[ks] = Na_kj[ks] @ U[j0]
-        HuU[ks] = G_kj[1][ks] @ U[j0][:, None]
+        HuU[ks] = Gu_kj[ks] @ U[j0][:, None]
+    return _Schedules(keys, by_key, BBU, NaU, HuU)
 
-    X_WO = np.full((T, 4, 4), np.nan)
-    omega_W = np.full((T, 3), np.nan)
-    f_O = np.full((T, 2, 3), np.nan)
-    f_sup = np.full((T, model.n_support, 3), np.nan)
-    err = np.full(T, np.nan)
-    n_iter = np.full(T, -1, dtype=np.int64)
-    solve_time = np.full(T, np.nan)
-    status, fail_step, fail_reason = STATUS_OK, -1, ""
 
-    R = R_ref[0].copy()
-    nu = np.zeros(nr)
-    f_prev = np.zeros((N, 2, 3))  # previous solution's forces, shifted by one stage (O)
-    p_A_W = p_support_W[0]
-    Ss = np.empty((N + 1, nx, lay.nz + 1))  # the condensed prediction, see below
-    Ss[0] = 0.0
-    BU = np.empty((N, nx, lay.nz + 1))
-    Ss_j, BU_j = list(Ss), list(BU)  # views of each stage
-    diag = np.arange(lay.nz) * (lay.nz + 1)  # flat indices of the QP's diagonal
-    for k in range(T):
-        X_WO[k, :3, :3] = R
-        X_WO[k, :3, 3] = p_A_W - R @ model.p_A_O
-        X_WO[k, 3] = (0.0, 0.0, 0.0, 1.0)
-        delta0 = _log_so3(R @ R_ref[k].T)
-        err[k] = np.sqrt(delta0.dot(delta0))  # np.linalg.norm's own formula
-        omega0 = R @ model.P_O @ nu if lay.edge else nu  # nu is omega_W itself about a vertex
-        omega_W[k] = omega0
-        # Stages linearised along the reference (the state enters through x0), with the forces
-        # of the previous plan for the lever-arm terms (:func:`_with_force_terms`; the
-        # accelerations are needed at the knots only).
+class _StepQP:
+    """The QP of each MPC step (§5.2.2): the dynamics (eq. 7-10) linearised along the reference with
+    the previous plan's forces for the lever-arm terms, condensed onto the move-blocked forces ``z``
+    (:class:`_Layout`), with the EEF and table friction rows and the tracking-error bound. Built from
+    what :func:`_run_mpc` fixes once; the condensing buffers are reused from step to step."""
+
+    def __init__(self, model: RotationModel, ref: _Reference, lay: _Layout, sched: _Schedules, H_table, T: int,
+                 params: Params):
+        N, nr = params.horizon, model.n_rot
+        self.model, self.ref, self.lay, self.sched, self.H_table, self.params = model, ref, lay, sched, H_table, params
+        self.j0 = lay.knots[1:]  # knots after the first: the table rows along the prediction
+        kj = np.arange(T)[:, None] + self.j0  # what step k needs at its later knots' stages k + j0
+        _, _, TMa = ref.tensors
+        self.Ma_kj, self.TMa_kj, self.ca_kj = ref.base.Ma[kj], TMa[kj], ref.base.ca[kj]
+        self.G_kj = [G[kj] for G in ref.G]
+        self.W_cost = np.tile(np.concatenate([np.full(nr, params.alpha), np.full(nr, params.alpha_rate)]), N)
+        self.Ss = np.empty((N + 1, 2 * nr, lay.nz + 1))  # [S_j | s_j] with x_j = S_j z + s_j
+        self.Ss[0] = 0.0
+        self.BU = np.empty((N, 2 * nr, lay.nz + 1))
+        self.Ss_j, self.BU_j = list(self.Ss), list(self.BU)  # views of each stage
+        self.diag = np.arange(lay.nz) * (lay.nz + 1)  # flat indices of the QP's diagonal
+
+    def condense(self, k: int, delta0, nu, f_prev):
+        """Step k's prediction ``S_all, s_all`` and cost ``P_qp, c_qp`` from the state (``delta0``,
+        ``nu``), the stages linearised with the previous plan's forces ``f_prev (N, 2, 3)`` (O; the
+        accelerations at the knots only: ``Ma_j0``)."""
+        ref, lay, p, N, nr = self.ref, self.lay, self.params, self.params.horizon, self.model.n_rot
+        TA, TD, _ = ref.tensors
         sl = slice(k, k + N)
         f6 = f_prev.reshape(-1, 6)
-        lin_A = base_A[sl] + np.einsum("nl,nlij->nij", f6, TA[sl])
-        lin_D = base_D[sl] + np.einsum("nl,nli->ni", f6, TD[sl])
-        Ma_j0 = Ma_kj[k] + np.einsum("nl,nlij->nij", f6[j0], TMa_kj[k])
-        U, P_u, G_eef, hl_pre, hu_eef, U_0 = by_mask[keys[k]]
-
-        # Condense: [S_j | s_j] with x_j = S_j z + s_j, u_j = U_j z.
-        BU[:, :, :-1] = BBU[k]
-        BU[:, :, -1] = lin_D
-        Ss[0, :nr, -1] = ref_terms["Pt"][k] @ delta0  # x0
-        Ss[0, nr:, -1] = nu
+        lin_A = ref.base.A[sl] + np.einsum("nl,nlij->nij", f6, TA[sl])
+        lin_D = ref.base.D[sl] + np.einsum("nl,nli->ni", f6, TD[sl])
+        Ma_j0 = self.Ma_kj[k] + np.einsum("nl,nlij->nij", f6[self.j0], self.TMa_kj[k])
+        self.BU[:, :, :-1] = self.sched.BBU[k]
+        self.BU[:, :, -1] = lin_D
+        self.Ss[0, :nr, -1] = ref.terms["Pt"][k] @ delta0  # x0
+        self.Ss[0, nr:, -1] = nu
         for j in range(N):
-            S_next = Ss_j[j + 1]
-            np.matmul(lin_A[j], Ss_j[j], out=S_next)
-            S_next += BU_j[j]
-        S_all, s_all = Ss[:, :, :-1], Ss[:, :, -1]
-        x_ref = np.concatenate([np.zeros((N, nr)), nu_ref[k + 1:k + N + 1]], axis=1)
-        Sx = S_all[1:].reshape(N * nx, lay.nz)
-        WSx = W_cost[:, None] * Sx
-        P_qp = Sx.T @ WSx + P_u
-        c_qp = WSx.T @ (s_all[1:] - x_ref).reshape(N * nx)
+            S_next = self.Ss_j[j + 1]
+            np.matmul(lin_A[j], self.Ss_j[j], out=S_next)
+            S_next += self.BU_j[j]
+        S_all, s_all = self.Ss[:, :, :-1], self.Ss[:, :, -1]
+        x_ref = np.concatenate([np.zeros((N, nr)), ref.nu[k + 1:k + N + 1]], axis=1)
+        Sx = S_all[1:].reshape(N * 2 * nr, lay.nz)
+        WSx = self.W_cost[:, None] * Sx
+        P_qp = Sx.T @ WSx + self.sched.by_key[self.sched.keys[k]][1]
+        c_qp = WSx.T @ (s_all[1:] - x_ref).reshape(N * 2 * nr)
         # A token weight keeps the value of a knot that no touching stage uses at zero (and the
         # along-edge reaction parts bounded).
-        P_qp.flat[diag] += 1e-6 * params.beta + 1e-9
+        P_qp.flat[self.diag] += 1e-6 * p.beta + 1e-9
+        return S_all, s_all, P_qp, c_qp, Ma_j0
 
-        # Table rows at each knot's stage. Knot 0 (the force applied now): exact at the state.
-        F_u, F_c, e_s = _reaction_map(model, R, nu)  # (nv, 3, 6), (nv, 3), (nv, 3)
+    def table_rows(self, k: int, R, nu, S_all, s_all, Ma_j0, U_0):
+        """The table's friction rows ``G_tab z <= hu_tab`` at each knot's stage: knot 0 (the force
+        applied now) exact at the state ``R, nu``; the later ones along the reference, through the
+        predicted ``nu'_j = Ma x_j + Na u_j + ca``. Also the reaction map at the state."""
+        H_table, lay = self.H_table, self.lay
+        F_u, F_c, e_s = _reaction_map(self.model, R, nu)  # (nv, 3, 6), (nv, 3), (nv, 3)
         G_tab = [np.einsum("vri,vin->vrn", H_table, F_u @ U_0)[None]]
         hu_tab = [-np.einsum("vri,vi->vr", H_table, F_c)[None]]
-        # Later knots: along the reference, through the predicted nu'_j = Ma x_j + Na u_j + ca.
-        if len(j0):
-            H_nu, h_0 = G_kj[0][k], G_kj[2][k]
-            nud_z = Ma_j0 @ S_all[j0] + NaU[k]  # (nj, nr, nz)
-            nud_c = np.einsum("bij,bj->bi", Ma_j0, s_all[j0]) + ca_kj[k]
-            G_tab.append(H_nu @ nud_z[:, None] + HuU[k])
+        if len(self.j0):
+            H_nu, h_0 = self.G_kj[0][k], self.G_kj[2][k]
+            nud_z = Ma_j0 @ S_all[self.j0] + self.sched.NaU[k]  # (nj, nr, nz)
+            nud_c = np.einsum("bij,bj->bi", Ma_j0, s_all[self.j0]) + self.ca_kj[k]
+            G_tab.append(H_nu @ nud_z[:, None] + self.sched.HuU[k])
             hu_tab.append(-(np.einsum("bvrj,bj->bvr", H_nu, nud_c) + h_0))
         G_tab = np.concatenate(G_tab)  # (nk, nv, 6, nz)
         hu_tab = np.concatenate(hu_tab).reshape(-1)
         if lay.edge:  # the along-edge split, one unknown per knot
-            He = np.concatenate([np.einsum("vri,vi->vr", H_table, e_s)[None], G_kj[3][k]])
+            He = np.concatenate([np.einsum("vri,vi->vr", H_table, e_s)[None], self.G_kj[3][k]])
             G_tab[np.arange(lay.nk), :, :, 6 * lay.nk + np.arange(lay.nk)] += He
-        G_tab = G_tab.reshape(-1, lay.nz)
+        return G_tab.reshape(-1, lay.nz), hu_tab, (F_u, F_c, e_s)
 
+    def solve(self, k: int, R, nu, delta0, f_prev):
+        """Step k's QP solved with PIQP's dense interior-point method for the change from the
+        previous plan (the free response falls far from the reference under gravity, so centring on
+        a nominal keeps the numbers small): ``(status, z, iterations, seconds, U, reaction map)``."""
+        lay, p = self.lay, self.params
+        S_all, s_all, P_qp, c_qp, Ma_j0 = self.condense(k, delta0, nu, f_prev)
+        U, _, G_eef, hl_pre, hu_eef, U_0 = self.sched.by_key[self.sched.keys[k]]
+        G_tab, hu_tab, reaction = self.table_rows(k, R, nu, S_all, s_all, Ma_j0, U_0)
         # Tracking-error bound.
-        G_err = S_all[lay.err_idx, :nr].reshape(-1, lay.nz)
-        s_err = s_all[lay.err_idx, :nr].reshape(-1)
-
+        G_err = S_all[lay.err_idx, :self.model.n_rot].reshape(-1, lay.nz)
+        s_err = s_all[lay.err_idx, :self.model.n_rot].reshape(-1)
         G = np.asfortranarray(np.concatenate([G_eef, G_tab, G_err]))
-        h_l = np.concatenate([hl_pre, -params.max_error - s_err])
-        h_u = np.concatenate([hu_eef, hu_tab, params.max_error - s_err])
-
-        # Solve for the change from the previous plan: the free response of the model falls
-        # far from the reference (gravity), so centring on a nominal keeps the numbers small.
+        h_l = np.concatenate([hl_pre, -p.max_error - s_err])
+        h_u = np.concatenate([hu_eef, hu_tab, p.max_error - s_err])
         z_bar = np.zeros(lay.nz)
         z_bar[:6 * lay.nk] = f_prev[lay.knots].reshape(-1)
         G_bar = G @ z_bar
         t0 = time.perf_counter()
         solver = piqp.DenseSolver()
-        solver.settings.max_iter = params.max_iter
+        solver.settings.max_iter = p.max_iter
         # Ruiz scaling costs a third more iterations on these (already SI-scaled) problems.
         solver.settings.preconditioner_iter = 0
-        solver.setup(np.asfortranarray(P_qp), c_qp + P_qp @ z_bar, None, None, G, h_l - G_bar,
-                     h_u=h_u - G_bar)
+        solver.setup(np.asfortranarray(P_qp), c_qp + P_qp @ z_bar, None, None, G, h_l - G_bar, h_u=h_u - G_bar)
         st = solver.solve()
-        solve_time[k] = time.perf_counter() - t0
-        n_iter[k] = solver.result.info.iter
+        return st, z_bar + solver.result.x, solver.result.info.iter, time.perf_counter() - t0, U, reaction
+
+
+def _run_mpc(model: RotationModel, p_support_W, t, X_ref, params: Params, mask) -> MPCResult:
+    """The receding-horizon loop (§5.2.2) of :func:`run_pivot_mpc` and :func:`run_tumble_mpc`: at each
+    step the QP of :class:`_StepQP`, its first force applied through the model (eq. 7-10,
+    :func:`integrate_rotation`); stops at the first step whose QP PIQP does not solve."""
+    t_start = time.perf_counter()
+    T, N = len(t), params.horizon
+    H_table, H_eef = _pyramids(model, X_ref[0], p_support_W, params)
+    ref = _reference(model, p_support_W, X_ref, H_table, params)
+    lay = _Layout(N, params.block, model.edge_O is not None)
+    mask_pad = np.concatenate([mask, np.broadcast_to(mask[-1], (N + 1, 2))])
+    sched = _schedules(lay, ref, mask_pad, lay.knots[1:], H_eef, T, lay.nk * model.n_support * 6, params)
+    qp = _StepQP(model, ref, lay, sched, H_table, T, params)
+    X_WO, omega_W = np.full((T, 4, 4), np.nan), np.full((T, 3), np.nan)
+    f_O, f_sup = np.full((T, 2, 3), np.nan), np.full((T, model.n_support, 3), np.nan)
+    err, solve_time = np.full(T, np.nan), np.full(T, np.nan)
+    n_iter = np.full(T, -1, dtype=np.int64)
+    status, fail_step, fail_reason = STATUS_OK, -1, ""
+    R, nu = ref.R[0].copy(), np.zeros(model.n_rot)
+    f_prev = np.zeros((N, 2, 3))  # previous solution's forces, shifted by one stage (O)
+    p_A_W = p_support_W[0]
+    for k in range(T):
+        X_WO[k, :3, :3] = R
+        X_WO[k, :3, 3] = p_A_W - R @ model.p_A_O
+        X_WO[k, 3] = (0.0, 0.0, 0.0, 1.0)
+        delta0 = _log_so3(R @ ref.R[k].T)
+        err[k] = np.sqrt(delta0.dot(delta0))  # np.linalg.norm's own formula
+        omega_W[k] = R @ model.P_O @ nu if lay.edge else nu  # nu is omega_W itself about a vertex
+        st, z, n_iter[k], solve_time[k], U, (F_u, F_c, e_s) = qp.solve(k, R, nu, delta0, f_prev)
         if st != piqp.PIQP_SOLVED:
             status, fail_step, fail_reason = STATUS_INFEASIBLE, k, str(st).split(".")[-1]
             break
-        z = z_bar + solver.result.x
         u = np.einsum("nij,j->ni", U, z).reshape(N, 2, 3)
         f_O[k] = u[0]
         f_sup[k] = F_u @ u[0].reshape(6) + F_c + (z[6 * lay.nk] * e_s if lay.edge else 0.0)  # Newton-Euler
         f_prev[:-1] = u[1:]  # linearise the next step about this plan
         f_prev[-1] = u[-1]
         if k + 1 < T:
-            R, nu = integrate_rotation(model, R, nu, u[0], dt)
-
+            R, nu = integrate_rotation(model, R, nu, u[0], dt=params.dt)
     f_W = np.einsum("tij,tkj->tki", X_WO[:, :3, :3], f_O)
     p_eef = se3.transform_points(X_WO[:, None], model.r_eef_O[None] + model.p_A_O)
     return MPCResult(t=t, X_WO=X_WO, omega_W=omega_W, X_WO_ref=X_ref, f_eef_W=f_W, f_eef_O=f_O, p_eef_W=p_eef,
