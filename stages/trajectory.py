@@ -859,7 +859,7 @@ def _mpc_failure(env: _Env, roll: Roll, k: int, c: int, mode: str, out: str) -> 
 def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray, X_to: np.ndarray) -> dict:
     """Rows of one tumble step (module docstring, "Tumble"), appended to ``tl``; returns a summary
     (catcher, contact, mode, angles, MPC figures). Raises :class:`TumbleError` when it cannot be done."""
-    P, dt, r = env.params.tumble, env.params.mpc.dt, env.r
+    P, r = env.params.tumble, env.r
     robot, model, gp = env.robot, env.model, env.graph
     pusher = str(step["pusher"])
     catcher = _other(pusher)
@@ -892,7 +892,7 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
         if usp or err.code not in ("no_catcher", "mpc_infeasible"):
             raise
         return _plan_drop(env, tl, _Drop(k, step, roll, X_from, X_to, pusher, c_p, q_push[0], q_after), err)
-    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c, X_out, tgt_out, q_out = got[:-1]
+    c, mode, th_c, t_prof, theta, on_p, n_rel, X_ref, q_p, ik, q_c = got[:11]
     X_mpc, f_mpc, f_tab, errs = got.mpc
     T = len(theta)
     tgt_p = _ball_centres(X_ref, env.p_O[c_p], env.n_O[c_p], r)
@@ -915,37 +915,50 @@ def plan_tumble(env: _Env, tl: _Timeline, k: int, step: dict, X_from: np.ndarray
            c={pusher: on_p, catcher: np.ones(T, bool)}, f_table=f_tab)
     tl.q[pusher], tl.q[catcher] = q_p[-1], q_c[-1]
     tl.contact[pusher], tl.contact[catcher] = -1, c
-    n_out = len(X_out)
-    f_h = None  # into USP: the catcher's holding force
-    if mode == "slide":
-        tl.contact[catcher] = -1
-        tl.add(k, "tumble", "slide", X_out, X_start=X_from, p={catcher: tgt_out},
-               f={catcher: np.broadcast_to(f_mpc[-1, ic], (n_out, 3))}, q={catcher: q_out},
-               c={catcher: np.ones(n_out, bool)})
-        tl.q[catcher] = q_out[-1]
-        X_drop = roll.poses(_free_fall(env, roll, th_c, dt))
-        tl.add(k, "tumble", "drop", X_drop, X_start=X_from)
-        tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
-    elif mode == "place":
-        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="place", X_start=X_from)
-        tl.contact[catcher] = -1
-        tl.add(k, "tumble", "retreat", X_out, X_start=X_from, p={catcher: tgt_out}, q={catcher: q_out},
-               c={catcher: np.zeros(n_out, bool)})
-        tl.q[catcher] = q_out[-1]
-        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="settle", X_start=X_from)
-    else:  # the catcher alone holds the object in USP from now on: from the MPC's last force to the least
-        f_h = hold_force(env, X_to, c)
-        if f_h is None:
-            raise TumbleError("unstable", f"step {k}: the catcher on contact {c} cannot hold the object alone")
-        T_s = max(1, int(round(P.settle / dt)))
-        s_ = _min_jerk_kernel(np.arange(T_s) / max(T_s - 1, 1))[:, None]
-        tl.add(k, "tumble", "settle", np.broadcast_to(X_to, (T_s, 4, 4)), X_start=X_from,
-               f={catcher: (1.0 - s_) * f_mpc[-1, ic] + s_ * f_h})
+    f_h = _let_go(env, tl, k, got, roll, catcher, X_from, X_to)
     _arms_back(env, tl, k, (pusher, catcher), q_after, X_to, f_h if usp else None)
     return {"catcher": catcher, "catch_contact": int(c), "mode": mode, "catcher_ik": ik,
             "release_deg": float(np.degrees(th_r)),
             "catch_end_deg": float(np.degrees(th_c)), "total_deg": float(np.degrees(roll.total)),
             "segments": len(roll.angle), "mpc_max_error": max(errs) if errs else 0.0}
+
+
+def _let_go(env: _Env, tl: _Timeline, k: int, got: _Catch, roll: Roll, catcher: str, X_from: np.ndarray,
+            X_to: np.ndarray):
+    """Rows of the catcher letting go after its catch ``got`` (module docstring, "Tumble", 5.): it
+    slides out and the object drops the rest of the way, or it places the object and backs off, or
+    (into USP) it holds the object alone, its force going from the MPC's last to the least that holds
+    (:func:`hold_force`), which it returns (N, W; None in SP). Raises :class:`TumbleError`
+    (``unstable``) when no force of the catcher alone holds the object there."""
+    P, dt = env.params.tumble, env.params.mpc.dt
+    f_last = got.mpc[1][-1, 1]  # the catcher's last MPC force (W)
+    n_out = len(got.X_out)
+    if got.mode == "slide":
+        tl.contact[catcher] = -1
+        tl.add(k, "tumble", "slide", got.X_out, X_start=X_from, p={catcher: got.tgt_out},
+               f={catcher: np.broadcast_to(f_last, (n_out, 3))}, q={catcher: got.q_out},
+               c={catcher: np.ones(n_out, bool)})
+        tl.q[catcher] = got.q_out[-1]
+        X_drop = roll.poses(_free_fall(env, roll, got.th_c, dt))
+        tl.add(k, "tumble", "drop", X_drop, X_start=X_from)
+        tl.hold(X_to, k, P.settle, kind="tumble", phase="settle", X_start=X_from)
+        return None
+    if got.mode == "place":
+        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="place", X_start=X_from)
+        tl.contact[catcher] = -1
+        tl.add(k, "tumble", "retreat", got.X_out, X_start=X_from, p={catcher: got.tgt_out}, q={catcher: got.q_out},
+               c={catcher: np.zeros(n_out, bool)})
+        tl.q[catcher] = got.q_out[-1]
+        tl.hold(X_to, k, P.settle / 2, kind="tumble", phase="settle", X_start=X_from)
+        return None
+    f_h = hold_force(env, X_to, got.c)  # held alone in USP from now on
+    if f_h is None:
+        raise TumbleError("unstable", f"step {k}: the catcher on contact {got.c} cannot hold the object alone")
+    T_s = max(1, int(round(P.settle / dt)))
+    s_ = _min_jerk_kernel(np.arange(T_s) / max(T_s - 1, 1))[:, None]
+    tl.add(k, "tumble", "settle", np.broadcast_to(X_to, (T_s, 4, 4)), X_start=X_from,
+           f={catcher: (1.0 - s_) * f_last + s_ * f_h})
+    return f_h
 
 
 def _arms_back(env: _Env, tl: _Timeline, k: int, arms: tuple, q_after: dict, X_to: np.ndarray, f_h) -> None:
