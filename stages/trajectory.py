@@ -387,7 +387,6 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
     exact = params.stick_clearance + 0.004  # which rows turn, and by how much, only needs this much exact
     out = []
     for arm, qk, ck in (("left", "q_l", "c_l"), ("right", "q_r", "c_r")):
-        a = robot.arm(arm)
         contact = np.asarray(rows[ck], dtype=bool)
         d = np.diff(np.r_[0, contact.astype(int), 0])
         for s0, e0 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True):
@@ -400,55 +399,80 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
             rec = {"arm": arm, "rows": [int(s), int(e)], "clearance": float(clear.min())}
             if not need.any():
                 continue
-            F = robot.fk(arm, q)
-            c_ball, R_ball = F[:, a.eef_index, :3, 3], F[:, a.eef_index, :3, :3]
-            lever = p_tool - c_ball
-            axis = np.cross(lever, g)
-            axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
-            turn = np.where(need, (params.stick_clearance - clear) / np.maximum(np.linalg.norm(lever, axis=1), 0.01),
-                            0.0)
-            turn = np.minimum(turn, params.stick_max_turn)
-            # Spread each row's turn over its neighbours (minimum-jerk kernel), zero at the stretch's ends.
-            k = np.arange(-ramp, ramp + 1)
-            kernel = 1.0 - _min_jerk_kernel(np.abs(k) / ramp)
-            spread = np.zeros(len(q))
-            rv = np.zeros((len(q), 3))
-            for i in np.flatnonzero(need):
-                lo, hi = max(i - ramp, 0), min(i + ramp + 1, len(q))
-                w = turn[i] * kernel[lo - i + ramp: hi - i + ramp]
-                better = w > spread[lo:hi]
-                spread[lo:hi] = np.where(better, w, spread[lo:hi])
-                rv[lo:hi][better] = axis[i]
-            edge = np.minimum(np.arange(len(q)), np.arange(len(q))[::-1]) / ramp
-            spread *= _min_jerk_kernel(np.minimum(edge, 1.0))
-            R_t = Rotation.from_rotvec(rv * spread[:, None]).as_matrix() @ R_ball
-            q_new, err = _ik_pose(robot, arm, c_ball, R_t, q)
-            q_new[spread == 0.0] = q[spread == 0.0]
+            q_new, err = _turned_joints(robot, arm, q, p_tool, g, clear, need, ramp, params)
             clear_new = tool_clearance(robot, arm, q_new, X[s:e], env.mesh, exact_within=exact)[0]
             rec["clearance_after"] = float(clear_new.min())
-            why = "ok"
-            ends = np.abs(np.concatenate([q_new[:1] - q[:1], q_new[-1:] - q[-1:]])).max()
-            speed = np.abs(np.diff(np.concatenate([rows[qk][s - 1:s], q_new, rows[qk][e:e + 1]]), axis=0)) / dt
-            if err.max() > 1e-3:
-                why = "ik_unreachable"
-            elif ends > 1e-9 or (speed / a.velocity).max() > 1.0:
-                why = "joint_jump"
-            elif clear_new.min() <= clear.min():
-                why = "no_better"
-            else:
-                other = rows["q_r" if arm == "left" else "q_l"][s:e]
-                ql, qr = (q_new, other) if arm == "left" else (other, q_new)
-                # The ball's centre is the plan's (approach and retreat included): only the rest is checked.
-                touching = np.stack([rows["c_l"][s:e], rows["c_r"][s:e]], axis=1).astype(bool)
-                touching[:, ARMS.index(arm)] = True
-                ok, reason = env.collide(ql, qr, X[s:e], touching)
-                if not ok.all():
-                    why = str(reason[np.argmin(ok)])
-            rec["kept"] = why
+            rec["kept"] = why = _stretch_verdict(env, rows, arm, (s, e), q, q_new, err, clear, clear_new)
             if why == "ok":
                 rows[qk][s:e] = q_new
             out.append(rec)
     return out
+
+
+def _turned_joints(robot, arm: str, q: np.ndarray, p_tool: np.ndarray, g: np.ndarray, clear: np.ndarray,
+                   need: np.ndarray, ramp: int, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`refine_stick_clearance`'s turn of one contact stretch: each row of ``need`` turns its
+    ball about the centre, about the axis that moves the tool's nearest point ``p_tool`` away along
+    the clearance gradient ``g`` (W), by the deficit over that point's lever (at most
+    ``stick_max_turn``), spread over ``ramp`` rows each side with a minimum-jerk kernel and faded to
+    zero at the stretch's ends; the joints solved again (:func:`_ik_pose`, the centre kept).
+    Returns ``(q_new (T, n), IK error (T,) m)``; rows that do not turn keep ``q``."""
+    F = robot.fk(arm, q)
+    i_eef = robot.arm(arm).eef_index
+    c_ball, R_ball = F[:, i_eef, :3, 3], F[:, i_eef, :3, :3]
+    lever = p_tool - c_ball
+    axis = np.cross(lever, g)
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    turn = np.where(need, (params.stick_clearance - clear) / np.maximum(np.linalg.norm(lever, axis=1), 0.01),
+                    0.0)
+    turn = np.minimum(turn, params.stick_max_turn)
+    # Spread each row's turn over its neighbours (minimum-jerk kernel), zero at the stretch's ends.
+    k = np.arange(-ramp, ramp + 1)
+    kernel = 1.0 - _min_jerk_kernel(np.abs(k) / ramp)
+    spread = np.zeros(len(q))
+    rv = np.zeros((len(q), 3))
+    for i in np.flatnonzero(need):
+        lo, hi = max(i - ramp, 0), min(i + ramp + 1, len(q))
+        w = turn[i] * kernel[lo - i + ramp: hi - i + ramp]
+        better = w > spread[lo:hi]
+        spread[lo:hi] = np.where(better, w, spread[lo:hi])
+        rv[lo:hi][better] = axis[i]
+    edge = np.minimum(np.arange(len(q)), np.arange(len(q))[::-1]) / ramp
+    spread *= _min_jerk_kernel(np.minimum(edge, 1.0))
+    R_t = Rotation.from_rotvec(rv * spread[:, None]).as_matrix() @ R_ball
+    q_new, err = _ik_pose(robot, arm, c_ball, R_t, q)
+    q_new[spread == 0.0] = q[spread == 0.0]
+    return q_new, err
+
+
+def _stretch_verdict(env, rows: dict, arm: str, span: tuple[int, int], q: np.ndarray, q_new: np.ndarray,
+                     err: np.ndarray, clear: np.ndarray, clear_new: np.ndarray) -> str:
+    """Whether :func:`refine_stick_clearance` keeps the turned joints ``q_new`` of rows ``span`` of
+    ``arm``: ``"ok"``, or ``ik_unreachable`` (the ball more than 1 mm off its centre), ``joint_jump``
+    (the stretch's ends moved, or a joint over its speed limit), ``no_better`` (no clearance gained)
+    or the scene checker's collision (the ball's own contact exempt)."""
+    s, e = span
+    a, dt = env.robot.arm(arm), env.mp.dt
+    qk = "q_l" if arm == "left" else "q_r"
+    why = "ok"
+    ends = np.abs(np.concatenate([q_new[:1] - q[:1], q_new[-1:] - q[-1:]])).max()
+    speed = np.abs(np.diff(np.concatenate([rows[qk][s - 1:s], q_new, rows[qk][e:e + 1]]), axis=0)) / dt
+    if err.max() > 1e-3:
+        why = "ik_unreachable"
+    elif ends > 1e-9 or (speed / a.velocity).max() > 1.0:
+        why = "joint_jump"
+    elif clear_new.min() <= clear.min():
+        why = "no_better"
+    else:
+        other = rows["q_r" if arm == "left" else "q_l"][s:e]
+        ql, qr = (q_new, other) if arm == "left" else (other, q_new)
+        # The ball's centre is the plan's (approach and retreat included): only the rest is checked.
+        touching = np.stack([rows["c_l"][s:e], rows["c_r"][s:e]], axis=1).astype(bool)
+        touching[:, ARMS.index(arm)] = True
+        ok, reason = env.collide(ql, qr, rows["X"][s:e], touching)
+        if not ok.all():
+            why = str(reason[np.argmin(ok)])
+    return why
 
 
 def _min_jerk_kernel(s: np.ndarray) -> np.ndarray:
