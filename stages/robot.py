@@ -789,46 +789,8 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
     if X_WB.shape != (4, 4) or not np.all(np.isfinite(X_WB)):
         raise InputError(f"{path}: the base pose must be a finite (4, 4) transform")
 
-    def path_to(link: str) -> list[str]:
-        if link not in links:
-            raise InputError(f"{path}: end-effector link {link!r} is not in the URDF")
-        chain = [link]
-        while chain[-1] in joints:
-            chain.append(joints[chain[-1]].parent)
-            if len(chain) > len(links):
-                raise InputError(f"{path}: the joint tree has a cycle")
-        return chain[::-1]  # root first
-
-    paths = [path_to(e) for e in eef_links]
-    if paths[0][0] != paths[1][0]:
-        raise InputError(f"{path}: the two end-effectors are not in one tree")
-    n_common = 0
-    while n_common < min(map(len, paths)) and paths[0][n_common] == paths[1][n_common]:
-        n_common += 1
-    if n_common == min(map(len, paths)):
-        raise InputError(f"{path}: one end-effector link lies on the other's chain")
-    trunk = set(paths[0][:n_common])
-
-    # World pose of every static link: reached from the root through fixed joints or trunk joints.
-    X_W = {paths[0][0]: X_WB}
-    arm_links = set(paths[0][n_common:]) | set(paths[1][n_common:])
-    pending = [paths[0][0]]
-    while pending:
-        parent = pending.pop()
-        for child, jt in joints.items():
-            if jt.parent != parent or child in arm_links:
-                continue
-            if jt.kind != "fixed" and child not in trunk:
-                continue  # a movable branch that is neither trunk nor arm: ignored
-            X = X_W[parent] @ jt.X_PC
-            if jt.kind != "fixed":
-                if not jt.lower <= torso_angle <= jt.upper:
-                    raise InputError(f"{path}: torso angle {torso_angle} rad is outside joint {jt.name}'s "
-                                     f"limits [{jt.lower}, {jt.upper}]")
-                X = X @ se3.make_transform(se3.rotation_about_axis(jt.axis, torso_angle), np.zeros(3))
-            X_W[child] = X
-            pending.append(child)
-
+    paths, n_common = _eef_chains(path, links, joints, eef_links)
+    X_W, arm_links = _static_poses(path, joints, paths, n_common, X_WB, torso_angle)
     arms = {}
     for name, chain in zip(("left", "right"), paths, strict=True):
         arms[name] = _make_arm(path, name, chain[n_common - 1], chain[n_common:], links, joints, X_W,
@@ -848,6 +810,58 @@ def load_robot(urdf_path: str | Path, X_WB: np.ndarray | None = None,
            replace(ik_params, threads=1, min_chunk=0))  # how the work is split changes no result
     return Robot(urdf_path=path, X_WB=X_WB, torso_angle=float(torso_angle), arms=arms, static=static,
                  ik_params=ik_params, _cache=_shared_cache(key))
+
+
+def _eef_chains(path: Path, links: dict, joints: dict, eef_links: tuple[str, str]) -> tuple[list[list[str]], int]:
+    """Each end-effector's link chain from the URDF's root (root first) and how many links the two
+    share (the trunk); refuses end-effectors that are missing, in two trees, or one on the other's
+    chain, and a joint tree with a cycle."""
+    def path_to(link: str) -> list[str]:
+        if link not in links:
+            raise InputError(f"{path}: end-effector link {link!r} is not in the URDF")
+        chain = [link]
+        while chain[-1] in joints:
+            chain.append(joints[chain[-1]].parent)
+            if len(chain) > len(links):
+                raise InputError(f"{path}: the joint tree has a cycle")
+        return chain[::-1]  # root first
+
+    paths = [path_to(e) for e in eef_links]
+    if paths[0][0] != paths[1][0]:
+        raise InputError(f"{path}: the two end-effectors are not in one tree")
+    n_common = 0
+    while n_common < min(map(len, paths)) and paths[0][n_common] == paths[1][n_common]:
+        n_common += 1
+    if n_common == min(map(len, paths)):
+        raise InputError(f"{path}: one end-effector link lies on the other's chain")
+    return paths, n_common
+
+
+def _static_poses(path: Path, joints: dict, paths: list[list[str]], n_common: int, X_WB: np.ndarray,
+                  torso_angle: float) -> tuple[dict, set]:
+    """World pose ``(4, 4)`` of every static link: those reached from the root through fixed joints
+    or trunk joints (held at ``torso_angle`` rad, which must lie in their limits); movable branches
+    that are neither trunk nor arm are ignored. Also the arms' link names."""
+    trunk = set(paths[0][:n_common])
+    X_W = {paths[0][0]: X_WB}
+    arm_links = set(paths[0][n_common:]) | set(paths[1][n_common:])
+    pending = [paths[0][0]]
+    while pending:
+        parent = pending.pop()
+        for child, jt in joints.items():
+            if jt.parent != parent or child in arm_links:
+                continue
+            if jt.kind != "fixed" and child not in trunk:
+                continue
+            X = X_W[parent] @ jt.X_PC
+            if jt.kind != "fixed":
+                if not jt.lower <= torso_angle <= jt.upper:
+                    raise InputError(f"{path}: torso angle {torso_angle} rad is outside joint {jt.name}'s "
+                                     f"limits [{jt.lower}, {jt.upper}]")
+                X = X @ se3.make_transform(se3.rotation_about_axis(jt.axis, torso_angle), np.zeros(3))
+            X_W[child] = X
+            pending.append(child)
+    return X_W, arm_links
 
 
 @lru_cache(maxsize=8)
