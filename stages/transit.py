@@ -247,6 +247,55 @@ def _leave_contacts(robot, arm: str, qs: list, normals: list, params: Params) ->
     return out
 
 
+def _inputs(a, q_start, q_goal, q_other, X_WO):
+    """:func:`plan_transit`'s inputs checked: finite ``(n,)`` joint vectors of arm ``a``, the start and
+    goal within its limits (to 1e-9 rad, then clipped), ``X_WO`` (4, 4) or None; ``ValueError`` else."""
+    n, vecs = a.dof, {}
+    for name, v in (("q_start", q_start), ("q_goal", q_goal), ("q_other", q_other)):
+        v = np.asarray(v, dtype=float)
+        if v.shape != (n,) or not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be a finite ({n},) joint vector, got shape {v.shape}")
+        vecs[name] = v
+    qs, qg, qo = vecs["q_start"], vecs["q_goal"], vecs["q_other"]
+    for name, v in (("q_start", qs), ("q_goal", qg)):
+        if np.any(v < a.lower - 1e-9) or np.any(v > a.upper + 1e-9):
+            raise ValueError(f"{name} is outside the joint limits of the {a.name} arm")
+    qs, qg = np.clip(qs, a.lower, a.upper), np.clip(qg, a.lower, a.upper)
+    if X_WO is not None:
+        X_WO = np.asarray(X_WO, dtype=float)
+        if X_WO.shape != (4, 4):
+            raise ValueError(f"X_WO must be (4, 4), got {X_WO.shape}")
+    return qs, qg, qo, X_WO
+
+
+def _middle(check, wide, a, w, q_from, q_to, d_states, params: Params, stats: dict):
+    """The joint path ``(K, n)`` from the retreat's end ``q_from`` to the approach's start ``q_to``
+    (:func:`plan_transit`'s step 2): the straight segment ``d_states`` when it passes (with the
+    clearance ``wide`` checks where both ends keep it), else OMPL's RRT-Connect (then shortcut); or
+    ``(status, reason)`` when none is found. Records the planner used in ``stats``."""
+    way = wide(np.concatenate([d_states, q_to[None]]))[0] if params.clearance > 0 else None  # q_from ... q_to
+    mid = wide if way is not None and way[0] and way[-1] else check
+    direct = way.all() if mid is wide else check(d_states)[0].all()
+    if direct:
+        stats["planner"] = "direct"
+        return np.stack([q_from, q_to])
+    stats["planner"] = "rrt_connect"
+    middle, info = _rrt_connect(mid, a.lower, a.upper, w, q_from, q_to, params)
+    stats.update(info)
+    if middle is None:
+        common = ", ".join(f"{k} ({v})" for k, v in mid.reasons.most_common(3))
+        return ("no_transit_path", f"RRT-Connect found no path in {info['iterations']} iterations "
+                f"({info['stop']}); most frequent collisions: {common}")
+    if params.simplify:
+        middle = shortcut(middle, mid, w, params.resolution)
+    states, seg = densify(middle, w, params.resolution)
+    ok, reason = mid(states)
+    if not ok.all():  # cannot happen with the same checker and resolution; kept as a guard
+        k = int(np.argmin(ok))
+        return ("no_transit_path", f"dense re-check failed on segment {seg[k]}: {reason[k]}")
+    return middle
+
+
 def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, params: Params = Params(),
                  n_start=None, n_goal=None) -> TransitResult:
     """Collision-free joint path of ``arm`` from ``q_start`` to ``q_goal`` with the other arm still.
@@ -273,21 +322,7 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
     t0 = time.perf_counter()
     a = robot.arm(arm)
     n = a.dof
-    vecs = {}
-    for name, v in (("q_start", q_start), ("q_goal", q_goal), ("q_other", q_other)):
-        v = np.asarray(v, dtype=float)
-        if v.shape != (n,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite ({n},) joint vector, got shape {v.shape}")
-        vecs[name] = v
-    qs, qg, qo = vecs["q_start"], vecs["q_goal"], vecs["q_other"]
-    for name, v in (("q_start", qs), ("q_goal", qg)):
-        if np.any(v < a.lower - 1e-9) or np.any(v > a.upper + 1e-9):
-            raise ValueError(f"{name} is outside the joint limits of the {arm} arm")
-    qs, qg = np.clip(qs, a.lower, a.upper), np.clip(qg, a.lower, a.upper)
-    if X_WO is not None:
-        X_WO = np.asarray(X_WO, dtype=float)
-        if X_WO.shape != (4, 4):
-            raise ValueError(f"X_WO must be (4, 4), got {X_WO.shape}")
+    qs, qg, qo, X_WO = _inputs(a, q_start, q_goal, q_other, X_WO)
     check = _Checker(collide, ("left", "right").index(arm), qo, X_WO)
     wide = _Checker(collide, ("left", "right").index(arm), qo, X_WO, params.clearance)
     w = lever_arms(a)
@@ -329,27 +364,9 @@ def plan_transit(robot, collide, arm: str, q_start, q_goal, q_other, X_WO, param
         if len(bad):
             return _fail(status, f"{what}: {reason[e - len(states) + bad[0]]}", n, done())
 
-    way = wide(np.concatenate([d_states, A[:1]]))[0] if params.clearance > 0 else None  # R[-1] ... A[0]
-    mid = wide if way is not None and way[0] and way[-1] else check
-    direct = way.all() if mid is wide else check(d_states)[0].all()
-    if direct:
-        middle = np.stack([R[-1], A[0]])
-        stats["planner"] = "direct"
-    else:
-        stats["planner"] = "rrt_connect"
-        middle, info = _rrt_connect(mid, a.lower, a.upper, w, R[-1], A[0], params)
-        stats.update(info)
-        if middle is None:
-            common = ", ".join(f"{k} ({v})" for k, v in mid.reasons.most_common(3))
-            return _fail("no_transit_path", f"RRT-Connect found no path in {info['iterations']} iterations "
-                         f"({info['stop']}); most frequent collisions: {common}", n, done())
-        if params.simplify:
-            middle = shortcut(middle, mid, w, params.resolution)
-        states, seg = densify(middle, w, params.resolution)
-        ok, reason = mid(states)
-        if not ok.all():  # cannot happen with the same checker and resolution; kept as a guard
-            k = int(np.argmin(ok))
-            return _fail("no_transit_path", f"dense re-check failed on segment {seg[k]}: {reason[k]}", n, done())
+    middle = _middle(check, wide, a, w, R[-1], A[0], d_states, params, stats)
+    if isinstance(middle, tuple):
+        return _fail(*middle, n, done())
     path = np.concatenate([R, middle[1:-1], A])
     return TransitResult(status="ok", path=path, reason="ok", n_retreat=len(R) - 1, n_approach=len(A) - 1,
                          stats=done())
