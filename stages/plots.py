@@ -237,13 +237,7 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(16, 7.5))
     sx, sy = scene.table.size
     for a_ in (ax, ax2):
-        a_.add_patch(plt.Rectangle((-sx / 2, -sy / 2), sx, sy, fc=(0.95, 0.93, 0.9), ec="k", lw=1))
-        for ob in scene.obstacle_geometries():
-            if ob.kind == "box":
-                c = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(ob.size[:2]) / 2
-                a_.add_patch(plt.Polygon((ob.X_WOb[:2, :2] @ c.T).T + ob.X_WOb[:2, 3], fc="0.5", ec="k"))
-            elif ob.kind == "cylinder":
-                a_.add_patch(plt.Circle(ob.X_WOb[:2, 3], ob.radius, fc="0.5", ec="k"))
+        _draw_table(a_, scene)
     ok = edges["status"] == "ok"
     _draw_lattice(ax, p, pose, edges, ok)
     path = plan.get("nodes", [])
@@ -254,8 +248,42 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     ax.set_title(f"graph: {len(nodes)} nodes, {ok.sum()} edges (faint); plan {plan['status']} (bold)")
     ax.legend(loc="upper left", fontsize=8)
 
-    hull2 = mesh.convex_hull.vertices
-    steps = plan.get("steps", [])
+    goal = (X[goal_pose], p[goal_pose]) if goal_pose is not None else None
+    _draw_storyboard(ax2, b, plan.get("steps", []), mesh.convex_hull.vertices, com, goal)
+    c = plan.get("counts", {})
+    ax2.set_title(f"plan: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} tumbles, {c.get('regrasp', 0)} regrasps "
+                  "(black dots: pivot vertices)")
+    ax2.legend(loc="upper left", fontsize=8)
+    for a_ in (ax, ax2):
+        a_.set_aspect("equal")
+        a_.set_xlim(-sx / 2 - 0.05, sx / 2 + 0.05)
+        a_.set_ylim(-sy / 2 - 0.1, sy / 2 + 0.1)
+        a_.set_xlabel("x (m)")
+        a_.set_ylabel("y (m)")
+    fig.tight_layout()
+    _save(fig, png)
+
+
+def _draw_table(ax, scene) -> None:
+    """The table's top and the obstacles' footprints (m, W) in plan view."""
+    sx, sy = scene.table.size
+    ax.add_patch(plt.Rectangle((-sx / 2, -sy / 2), sx, sy, fc=(0.95, 0.93, 0.9), ec="k", lw=1))
+    for ob in scene.obstacle_geometries():
+        if ob.kind == "box":
+            c = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * np.asarray(ob.size[:2]) / 2
+            ax.add_patch(plt.Polygon((ob.X_WOb[:2, :2] @ c.T).T + ob.X_WOb[:2, 3], fc="0.5", ec="k"))
+        elif ob.kind == "cylinder":
+            ax.add_patch(plt.Circle(ob.X_WOb[:2, 3], ob.radius, fc="0.5", ec="k"))
+
+
+def _draw_storyboard(ax2, b: Path, steps: list, hull2: np.ndarray, com: np.ndarray, goal) -> None:
+    """:func:`show_plan`'s right panel: the object's hull footprint ``hull2`` (O) at each pose of the
+    plan's ``steps`` (light to dark in plan order) with its CoM, the pivot vertices used, the start,
+    the plan's end and, with ``goal`` (its pose (4, 4) and CoM xy (2,)), the goal's footprint (dashed)."""
+    from scipy.spatial import ConvexHull
+
+    from stages import se3
+
     Xs = []
     for s in steps:
         for key in ("X_WO_from", "X_WO_to"):
@@ -265,8 +293,6 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
         if not uniq or np.abs(uniq[-1] - Xi).max() > 1e-9:
             uniq.append(Xi)
     cmap = plt.get_cmap("viridis")
-    from scipy.spatial import ConvexHull
-
     for i, Xi in enumerate(uniq):
         v = se3.transform_points(Xi, hull2)[:, :2]
         h = ConvexHull(v)
@@ -281,22 +307,10 @@ def show_plan(scene, build_dir: str | Path, png: str | Path, plan_path: str | Pa
     if uniq:
         for Xi, label, m in ((uniq[0], "start", "o"), (uniq[-1], "end", "X")):
             ax2.scatter(*se3.transform_points(Xi, com)[:2], s=120, marker=m, c="w", ec="k", zorder=5, label=label)
-    if goal_pose is not None:
-        v = se3.transform_points(X[goal_pose], hull2)[:, :2]
+    if goal is not None:
+        v = se3.transform_points(goal[0], hull2)[:, :2]
         ax2.add_patch(plt.Polygon(v[ConvexHull(v).vertices], fill=False, ec="goldenrod", lw=2, ls="--", zorder=5))
-        ax2.scatter(*p[goal_pose], s=260, marker="*", c="gold", ec="k", lw=1.2, zorder=6, label="goal")
-    c = plan.get("counts", {})
-    ax2.set_title(f"plan: {c.get('pivot', 0)} pivots, {c.get('tumble', 0)} tumbles, {c.get('regrasp', 0)} regrasps "
-                  "(black dots: pivot vertices)")
-    ax2.legend(loc="upper left", fontsize=8)
-    for a_ in (ax, ax2):
-        a_.set_aspect("equal")
-        a_.set_xlim(-sx / 2 - 0.05, sx / 2 + 0.05)
-        a_.set_ylim(-sy / 2 - 0.1, sy / 2 + 0.1)
-        a_.set_xlabel("x (m)")
-        a_.set_ylabel("y (m)")
-    fig.tight_layout()
-    _save(fig, png)
+        ax2.scatter(*goal[1], s=260, marker="*", c="gold", ec="k", lw=1.2, zorder=6, label="goal")
 
 
 def _draw_lattice(ax, p: np.ndarray, pose: np.ndarray, edges, ok: np.ndarray) -> None:
