@@ -57,6 +57,7 @@ capacity of the bounded EEF forces). LPs that the IPM does not converge are re-s
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linprog
@@ -755,6 +756,111 @@ def _rank_and_span(M, wstar):
     return 6 - null.sum(1), U, null, in_span
 
 
+class _Inputs(NamedTuple):
+    """:func:`evaluate`'s inputs checked and cleaned (inactive slots harmless, normals unit)."""
+
+    mass: np.ndarray
+    com_W: np.ndarray
+    table_pts_W: np.ndarray
+    table_mask: np.ndarray
+    eef_pts_W: np.ndarray
+    eef_normals_W: np.ndarray
+    eef_mask: np.ndarray
+    L: np.ndarray
+
+
+def _clean_inputs(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L) -> _Inputs:
+    """:func:`evaluate`'s arguments checked (shapes, finite active entries, non-zero normals;
+    :class:`PivotError` else); inactive slots, which may hold anything, replaced by harmless values."""
+    com_W = np.asarray(com_W, float)
+    if com_W.ndim != 2 or com_W.shape[1] != 3:
+        raise PivotError(f"stability: com_W has shape {com_W.shape}, expected (N, 3)")
+    N = com_W.shape[0]
+    table_pts_W = _check_points(table_pts_W, N, "table_pts_W")
+    eef_pts_W = _check_points(eef_pts_W, N, "eef_pts_W")
+    eef_normals_W = _check_points(eef_normals_W, N, "eef_normals_W")
+    if eef_normals_W.shape != eef_pts_W.shape:
+        raise PivotError(f"stability: eef_normals_W has shape {eef_normals_W.shape}, "
+                         f"expected {eef_pts_W.shape}")
+    k, e = table_pts_W.shape[1], eef_pts_W.shape[1]
+    table_mask = _as_mask(table_mask, (N, k), "table_mask")
+    eef_mask = _as_mask(eef_mask, (N, e), "eef_mask")
+    mass = _per_candidate(mass, N, "mass")
+    L = _per_candidate(L, N, "L")
+    if not np.all(np.isfinite(com_W)):
+        raise PivotError("stability: com_W has non-finite entries")
+    # Inactive slots may hold anything (NaN included): replace them by harmless values.
+    table_pts_W = np.where(table_mask[..., None], table_pts_W, com_W[:, None, :] - _EZ)
+    eef_pts_W = np.where(eef_mask[..., None], eef_pts_W, com_W[:, None, :] - _EZ)
+    eef_normals_W = np.where(eef_mask[..., None], eef_normals_W, _EZ)
+    nrm = np.linalg.norm(eef_normals_W, axis=-1)
+    if not (np.all(np.isfinite(table_pts_W)) and np.all(np.isfinite(eef_pts_W))
+            and np.all(np.isfinite(nrm))):
+        raise PivotError("stability: active contact points or normals have non-finite entries")
+    if np.any(nrm < 1e-9):
+        raise PivotError("stability: an active EEF contact has a zero normal")
+    eef_normals_W = eef_normals_W / nrm[..., None]
+    return _Inputs(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L)
+
+
+def _unit_wrenches(com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L, R_WD):
+    """The contacts' unit wrench bases ``(N, k | e, 6, 3)`` about the CoM (torques over ``L``), in W or
+    in the axes of ``R_WD``, the weight direction ``w* (N, 6)`` there (e_fz once divided by W), and
+    the EEF contact frames ``(N, e, 3, 3)`` (normal, two tangents; W)."""
+    N = com_W.shape[0]
+    # Contact frames and unit wrenches (W, or D axes for the margin); w* = e_fz after dividing by W.
+    r_t = table_pts_W - com_W[:, None, :]
+    r_e = eef_pts_W - com_W[:, None, :]
+    n_t = np.broadcast_to(_EZ, r_t.shape)
+    t1_t, t2_t = contact_frames(n_t, r_t)
+    t1_e, t2_e = contact_frames(eef_normals_W, r_e)
+    basis_t = contact_basis(r_t, n_t, t1_t, t2_t, table_mask, L)
+    basis_e = contact_basis(r_e, eef_normals_W, t1_e, t2_e, eef_mask, L)
+    wstar = np.zeros((N, 6))
+    wstar[:, 2] = 1.0
+    if R_WD is not None:
+        R_WD = np.asarray(R_WD, float)
+        if R_WD.shape not in ((3, 3), (N, 3, 3)) or not np.all(np.isfinite(R_WD)):
+            raise PivotError(f"stability: R_WD has shape {R_WD.shape}, expected (3, 3) or ({N}, 3, 3)")
+        RT = np.broadcast_to(np.swapaxes(R_WD, -1, -2), (N, 3, 3))
+        R6 = np.zeros((N, 1, 6, 6))
+        R6[:, 0, :3, :3] = R6[:, 0, 3:, 3:] = RT
+        basis_t, basis_e = R6 @ basis_t, R6 @ basis_e
+        wstar[:, :3] = RT @ _EZ
+    return basis_t, basis_e, wstar, np.stack([eef_normals_W, t1_e, t2_e], axis=-1)
+
+
+def _lp_data(rows, basis_t, basis_e, U, null, rank, wstar, p: Params):
+    """Wrench matrix rows of candidates ``rows`` in the eigenbasis ``U`` of their Gram matrix with the
+    null rows dropped, and w* there."""
+    gs = p.n_sides
+    G = np.concatenate([wrench_matrix(basis_t[rows], p.mu_table, gs),
+                        wrench_matrix(basis_e[rows], p.mu_eef, gs)], axis=2)
+    Ur, nl = U[rows], null[rows]
+    rot = rank[rows] < 6
+    if np.any(rot):
+        G[rot] = np.where(nl[rot][:, :, None], 0.0, np.swapaxes(Ur[rot], 1, 2) @ G[rot])
+    b = np.where(nl, 0.0, np.einsum("nji,nj->ni", Ur, wstar[rows]))
+    return G, b
+
+
+def _l1_margins(G, b, U, null, alpha, u, colmask, W, ng: int, p: Params) -> tuple[np.ndarray, int]:
+    """L1 wrench margins (N) of stable candidates (§4.3): the least of 12 ray LPs from the weight's
+    wrench (scaled to ``min(alpha, 1)``) along +-e_k projected onto span(G) (identity when rank 6),
+    unit L1 length, in the eigenbasis ``U``; with the HiGHS fallbacks' count."""
+    Ur = np.where(null[:, None, :], 0.0, U)  # row k of Ur is U^T P e_k
+    Pe = Ur @ np.swapaxes(U, 1, 2)                          # column k = P e_k
+    valid = np.linalg.norm(Pe, axis=1) > 1e-6
+    # A direction (almost) normal to the span is skipped: d = 0 runs t to the cap, ignored below.
+    dk = np.where(valid[:, :, None], Ur / np.maximum(np.abs(Pe).sum(1), tol.zero)[:, :, None], 0.0)
+    d12 = np.concatenate([dk, -dk], axis=1)                      # (S, 12, 6)
+    centre = np.minimum(alpha, 1.0)[:, None, None] * b[:, None, :]
+    t, fb = _solve_with_fallback(G, centre, d12, u, np.full(len(alpha), p.margin_cap), ng, p.n_sides, colmask, p)
+    t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, p.margin_cap)
+    t = np.where(np.concatenate([valid, valid], 1), t, p.margin_cap)
+    return t.min(1) * W, int(fb.sum())
+
+
 def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L,
              params: Params = Params(), *, R_WD=None, compute_margin: bool = True,
              alpha: np.ndarray | None = None) -> StabilityResult:
@@ -791,61 +897,18 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
     -------
     StabilityResult
     """
-    com_W = np.asarray(com_W, float)
-    if com_W.ndim != 2 or com_W.shape[1] != 3:
-        raise PivotError(f"stability: com_W has shape {com_W.shape}, expected (N, 3)")
-    N = com_W.shape[0]
-    table_pts_W = _check_points(table_pts_W, N, "table_pts_W")
-    eef_pts_W = _check_points(eef_pts_W, N, "eef_pts_W")
-    eef_normals_W = _check_points(eef_normals_W, N, "eef_normals_W")
-    if eef_normals_W.shape != eef_pts_W.shape:
-        raise PivotError(f"stability: eef_normals_W has shape {eef_normals_W.shape}, "
-                         f"expected {eef_pts_W.shape}")
-    k, e = table_pts_W.shape[1], eef_pts_W.shape[1]
-    table_mask = _as_mask(table_mask, (N, k), "table_mask")
-    eef_mask = _as_mask(eef_mask, (N, e), "eef_mask")
-    mass = _per_candidate(mass, N, "mass")
-    L = _per_candidate(L, N, "L")
-    if not np.all(np.isfinite(com_W)):
-        raise PivotError("stability: com_W has non-finite entries")
-    # Inactive slots may hold anything (NaN included): replace them by harmless values.
-    table_pts_W = np.where(table_mask[..., None], table_pts_W, com_W[:, None, :] - _EZ)
-    eef_pts_W = np.where(eef_mask[..., None], eef_pts_W, com_W[:, None, :] - _EZ)
-    eef_normals_W = np.where(eef_mask[..., None], eef_normals_W, _EZ)
-    nrm = np.linalg.norm(eef_normals_W, axis=-1)
-    if not (np.all(np.isfinite(table_pts_W)) and np.all(np.isfinite(eef_pts_W))
-            and np.all(np.isfinite(nrm))):
-        raise PivotError("stability: active contact points or normals have non-finite entries")
-    if np.any(nrm < 1e-9):
-        raise PivotError("stability: an active EEF contact has a zero normal")
-    eef_normals_W = eef_normals_W / nrm[..., None]
+    c = _clean_inputs(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L)
+    mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L = c
+    N, e = com_W.shape[0], eef_pts_W.shape[1]
     p = params
     W = mass * p.g
 
-    # Contact frames and unit wrenches (W, or D axes for the margin); w* = e_fz after dividing by W.
-    r_t = table_pts_W - com_W[:, None, :]
-    r_e = eef_pts_W - com_W[:, None, :]
-    n_t = np.broadcast_to(_EZ, r_t.shape)
-    t1_t, t2_t = contact_frames(n_t, r_t)
-    t1_e, t2_e = contact_frames(eef_normals_W, r_e)
-    basis_t = contact_basis(r_t, n_t, t1_t, t2_t, table_mask, L)
-    basis_e = contact_basis(r_e, eef_normals_W, t1_e, t2_e, eef_mask, L)
-    wstar = np.zeros((N, 6))
-    wstar[:, 2] = 1.0
-    if R_WD is not None:
-        R_WD = np.asarray(R_WD, float)
-        if R_WD.shape not in ((3, 3), (N, 3, 3)) or not np.all(np.isfinite(R_WD)):
-            raise PivotError(f"stability: R_WD has shape {R_WD.shape}, expected (3, 3) or ({N}, 3, 3)")
-        RT = np.broadcast_to(np.swapaxes(R_WD, -1, -2), (N, 3, 3))
-        R6 = np.zeros((N, 1, 6, 6))
-        R6[:, 0, :3, :3] = R6[:, 0, 3:, 3:] = RT
-        basis_t, basis_e = R6 @ basis_t, R6 @ basis_e
-        wstar[:, :3] = RT @ _EZ
+    basis_t, basis_e, wstar, eef_frames = _unit_wrenches(com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W,
+                                                         eef_mask, L, R_WD)
     M = wrench_gram(basis_t, p.mu_table, p.n_sides) + wrench_gram(basis_e, p.mu_eef, p.n_sides)
     rank, U, null, in_span = _rank_and_span(M, wstar)
     degenerate = ~in_span
 
-    eef_frames = np.stack([eef_normals_W, t1_e, t2_e], axis=-1)
     s_pf, u_pf = _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frames, p)
     s_pf &= ~degenerate
     u_pf &= ~degenerate
@@ -873,19 +936,8 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
     colmask = np.repeat(np.concatenate([table_mask, eef_mask], 1), gs, axis=1)
     u = np.repeat((p.f_max / W)[:, None], e, 1)
 
-    def lp_data(rows):
-        """Wrench matrix rows in the eigenbasis with the null rows dropped, and w* there."""
-        G = np.concatenate([wrench_matrix(basis_t[rows], p.mu_table, gs),
-                            wrench_matrix(basis_e[rows], p.mu_eef, gs)], axis=2)
-        Ur, nl = U[rows], null[rows]
-        rot = rank[rows] < 6
-        if np.any(rot):
-            G[rot] = np.where(nl[rot][:, :, None], 0.0, np.swapaxes(Ur[rot], 1, 2) @ G[rot])
-        b = np.where(nl, 0.0, np.einsum("nji,nj->ni", Ur, wstar[rows]))
-        return G, b
-
     if len(todo):
-        G, b = lp_data(todo)
+        G, b = _lp_data(todo, basis_t, basis_e, U, null, rank, wstar, p)
         t, fb = _solve_with_fallback(G, np.zeros((len(todo), 1, 6)), b[:, None, :], u[todo],
                                      np.full(len(todo), ALPHA_CAP), ng, gs, colmask[todo], p)
         alpha[todo] = np.nan_to_num(t[:, 0], nan=0.0)
@@ -896,24 +948,10 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
     margin = np.where(stable, np.nan, 0.0)
     sel = np.nonzero(stable)[0] if want_margin else np.zeros(0, int)
     if len(sel):
-        G, b = lp_data(sel)
-        # 12 directions +-e_k projected onto span(G) (identity when rank 6), unit L1 length, in the
-        # eigenbasis: row k of Ur is U^T P e_k.
-        Ur = np.where(null[sel][:, None, :], 0.0, U[sel])
-        Pe = Ur @ np.swapaxes(U[sel], 1, 2)                          # column k = P e_k
-        valid = np.linalg.norm(Pe, axis=1) > 1e-6
-        # A direction (almost) normal to the span is skipped: d = 0 runs t to the cap, ignored below.
-        dk = np.where(valid[:, :, None], Ur / np.maximum(np.abs(Pe).sum(1), tol.zero)[:, :, None], 0.0)
-        d12 = np.concatenate([dk, -dk], axis=1)                      # (S, 12, 6)
-        centre = np.minimum(alpha[sel], 1.0)[:, None, None] * b[:, None, :]
-        t, fb = _solve_with_fallback(G, centre, d12, u[sel], np.full(len(sel), p.margin_cap), ng, gs,
-                                     colmask[sel], p)
-        t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, p.margin_cap)
-        t = np.where(np.concatenate([valid, valid], 1), t, p.margin_cap)
-        margin[sel] = t.min(1) * W[sel]
+        G, b = _lp_data(sel, basis_t, basis_e, U, null, rank, wstar, p)
+        margin[sel], fallbacks = _l1_margins(G, b, U[sel], null[sel], alpha[sel], u[sel], colmask[sel], W[sel], ng, p)
         stats["margin_lps"] = 12 * len(sel)
-        stats["highs_fallbacks"] += int(fb.sum())
-
+        stats["highs_fallbacks"] += fallbacks
     reason = np.full(N, "ok", dtype="<U10")
     reason[~stable] = "unstable"
     reason[degenerate] = "degenerate"
