@@ -861,6 +861,38 @@ def _l1_margins(G, b, U, null, alpha, u, colmask, W, ng: int, p: Params) -> tupl
     return t.min(1) * W, int(fb.sum())
 
 
+def _first_verdicts(s_pf, u_pf, degenerate, alpha, feas_tol: float):
+    """What :func:`evaluate` knows before its feasibility LPs: ``(stable, decided, decided_by, alpha)``
+    from the rank test (``degenerate``) and the prefilter's sure verdicts (``s_pf`` stable, ``u_pf``
+    unstable), or, with ``alpha`` given (an earlier call's), every verdict from it."""
+    N = len(degenerate)
+    stable = s_pf.copy()
+    decided = degenerate | s_pf | u_pf
+    decided_by = np.full(N, "ipm", dtype="<U8")
+    decided_by[degenerate] = "rank"
+    decided_by[s_pf | u_pf] = "filter"
+    if alpha is None:
+        return stable, decided, decided_by, np.where(s_pf, np.inf, 0.0)
+    alpha = np.asarray(alpha, float)
+    if alpha.shape != (N,) or np.any(np.isnan(alpha)):
+        raise PivotError(f"stability: alpha has shape {alpha.shape}, expected ({N},) without NaN")
+    decided_by[:] = "given"
+    return ~degenerate & (alpha >= 1.0 - feas_tol), np.ones(N, bool), decided_by, alpha
+
+
+def _reasons(stable, degenerate, margin, margin_min: float):
+    """``(stable, reason)``: ``ok``, ``unstable``, ``degenerate``, or ``low_margin`` for a stable
+    candidate whose margin is under ``margin_min`` (N; 0: no such test), which is then not stable."""
+    reason = np.full(len(stable), "ok", dtype="<U10")
+    reason[~stable] = "unstable"
+    reason[degenerate] = "degenerate"
+    if margin_min > 0:
+        low = stable & (margin < margin_min)
+        stable = stable & ~low
+        reason[low] = "low_margin"
+    return stable, reason
+
+
 def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef_mask, L,
              params: Params = Params(), *, R_WD=None, compute_margin: bool = True,
              alpha: np.ndarray | None = None) -> StabilityResult:
@@ -910,24 +942,8 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
     degenerate = ~in_span
 
     s_pf, u_pf = _prefilter(W, com_W, table_pts_W, table_mask, eef_pts_W, eef_mask, eef_frames, p)
-    s_pf &= ~degenerate
-    u_pf &= ~degenerate
-    stable = s_pf.copy()
-    decided = degenerate | s_pf | u_pf
-    decided_by = np.full(N, "ipm", dtype="<U8")
-    decided_by[degenerate] = "rank"
-    decided_by[s_pf | u_pf] = "filter"
-    known = alpha is not None
-    if known:
-        alpha = np.asarray(alpha, float)
-        if alpha.shape != (N,) or np.any(np.isnan(alpha)):
-            raise PivotError(f"stability: alpha has shape {alpha.shape}, expected ({N},) without NaN")
-        stable = ~degenerate & (alpha >= 1.0 - p.feas_tol)
-        decided = np.ones(N, bool)
-        decided_by[:] = "given"
-    else:
-        alpha = np.where(s_pf, np.inf, 0.0)
-
+    s_pf, u_pf, known = s_pf & ~degenerate, u_pf & ~degenerate, alpha is not None
+    stable, decided, decided_by, alpha = _first_verdicts(s_pf, u_pf, degenerate, alpha, p.feas_tol)
     todo = np.nonzero(~decided)[0]
     want_margin = compute_margin or p.margin_min > 0
     stats = {"n": N, "degenerate": int(degenerate.sum()), "prefilter": 0 if known else int((s_pf | u_pf).sum()),
@@ -952,13 +968,7 @@ def evaluate(mass, com_W, table_pts_W, table_mask, eef_pts_W, eef_normals_W, eef
         margin[sel], fallbacks = _l1_margins(G, b, U[sel], null[sel], alpha[sel], u[sel], colmask[sel], W[sel], ng, p)
         stats["margin_lps"] = 12 * len(sel)
         stats["highs_fallbacks"] += fallbacks
-    reason = np.full(N, "ok", dtype="<U10")
-    reason[~stable] = "unstable"
-    reason[degenerate] = "degenerate"
-    if p.margin_min > 0:
-        low = stable & (margin < p.margin_min)
-        stable = stable & ~low
-        reason[low] = "low_margin"
+    stable, reason = _reasons(stable, degenerate, margin, p.margin_min)
     return StabilityResult(stable=stable, margin=margin, reason=reason, rank=rank.astype(np.int64),
                            decided_by=decided_by, alpha=alpha, stats=stats)
 
