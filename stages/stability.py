@@ -331,15 +331,7 @@ def solve_ray_lps(G, b, d, u, cap, n_groups, group_size, colmask=None, lp_tol=1e
     idx = np.arange(B)
     st = _IpmState(G, d, nullrow, ng, gs)
 
-    # Mehrotra's starting point: least-norm x and least-squares (y, z), shifted into the interior.
-    fac = st.factor(np.ones((B, K, nv)))
-    x = st.AT(st.solve(fac, bfull))
-    y = st.solve(fac, st.A(np.broadcast_to(c, (B, K, nv))))
-    z = c - st.AT(y)
-    x = np.maximum(x + np.maximum(-1.5 * x.min(2, keepdims=True), 0.0), 1e-8)
-    z = np.maximum(z + np.maximum(-1.5 * z.min(2, keepdims=True), 0.0), 1e-8)
-    xz = np.sum(x * z, 2, keepdims=True)
-    x, z = x + 0.5 * xz / np.sum(z, 2, keepdims=True), z + 0.5 * xz / np.sum(x, 2, keepdims=True)
+    x, y, z = _starting_point(st, bfull, c)
 
     bscale = lp_tol * (1.0 + np.abs(bfull).max(2))
     cscale = lp_tol * (1.0 + np.abs(c).max(2))
@@ -373,27 +365,50 @@ def solve_ray_lps(G, b, d, u, cap, n_groups, group_size, colmask=None, lp_tol=1e
             idx, x, y, z, xz, gap, c, bfull, bscale, cscale, done, rp, rd = (
                 a[keep] for a in (idx, x, y, z, xz, gap, c, bfull, bscale, cscale, done, rp, rd))
             st = st.take(keep)
-        D = x / z
-        # Finished LPs ride along with a harmless scaling (their extreme x/z would make M singular).
-        D[done] = 1.0
-        fac = st.factor(D)
-        # Predictor (affine scaling).
-        dx, dy, dz = st.newton(fac, D, x, z, rp, rd, -xz)
-        ap = _step(x, dx)
-        ad = _step(z, dz)
-        mu = gap / nv
-        mu_aff = np.einsum("bkn,bkn->bk", x + ap[..., None] * dx, z + ad[..., None] * dz) / nv
-        sigma = np.clip(mu_aff / np.maximum(mu, 1e-300), 0.0, 1.0) ** 3
-        # Corrector (centring plus second-order term).
-        rc = (sigma * mu)[..., None] - xz - dx * dz
-        dx, dy, dz = st.newton(fac, D, x, z, rp, rd, rc)
-        live = ~done
-        ap = (0.995 * live * _step(x, dx))[..., None]
-        ad = (0.995 * live * _step(z, dz))[..., None]
-        x += ap * dx
-        y += ad * dy
-        z += ad * dz
+        _mehrotra_step(st, x, y, z, xz, gap, rp, rd, done)
     return t_out, conv_out, last_it
+
+
+def _starting_point(st: _IpmState, bfull, c):
+    """Mehrotra's starting point of :func:`solve_ray_lps`: the least-norm ``x`` and least-squares
+    ``(y, z)``, shifted into the interior and balanced by their complementarity."""
+    B, K, nv = bfull.shape[0], bfull.shape[1], c.shape[2]
+    fac = st.factor(np.ones((B, K, nv)))
+    x = st.AT(st.solve(fac, bfull))
+    y = st.solve(fac, st.A(np.broadcast_to(c, (B, K, nv))))
+    z = c - st.AT(y)
+    x = np.maximum(x + np.maximum(-1.5 * x.min(2, keepdims=True), 0.0), 1e-8)
+    z = np.maximum(z + np.maximum(-1.5 * z.min(2, keepdims=True), 0.0), 1e-8)
+    xz = np.sum(x * z, 2, keepdims=True)
+    return x + 0.5 * xz / np.sum(z, 2, keepdims=True), y, z + 0.5 * xz / np.sum(x, 2, keepdims=True)
+
+
+def _mehrotra_step(st: _IpmState, x, y, z, xz, gap, rp, rd, done) -> None:
+    """One predictor–corrector step of :func:`solve_ray_lps` on ``x, y, z`` in place: the affine
+    direction, the centring ``sigma = (mu_aff / mu)^3``, the corrected direction with its
+    second-order term, and steps of 0.995 of the largest that keeps ``x, z`` positive; LPs already
+    ``done`` ride along with a harmless scaling and do not move."""
+    nv = x.shape[2]
+    D = x / z
+    # Finished LPs ride along with a harmless scaling (their extreme x/z would make M singular).
+    D[done] = 1.0
+    fac = st.factor(D)
+    # Predictor (affine scaling).
+    dx, dy, dz = st.newton(fac, D, x, z, rp, rd, -xz)
+    ap = _step(x, dx)
+    ad = _step(z, dz)
+    mu = gap / nv
+    mu_aff = np.einsum("bkn,bkn->bk", x + ap[..., None] * dx, z + ad[..., None] * dz) / nv
+    sigma = np.clip(mu_aff / np.maximum(mu, 1e-300), 0.0, 1.0) ** 3
+    # Corrector (centring plus second-order term).
+    rc = (sigma * mu)[..., None] - xz - dx * dz
+    dx, dy, dz = st.newton(fac, D, x, z, rp, rd, rc)
+    live = ~done
+    ap = (0.995 * live * _step(x, dx))[..., None]
+    ad = (0.995 * live * _step(z, dz))[..., None]
+    x += ap * dx
+    y += ad * dy
+    z += ad * dz
 
 
 def _cholesky_soa(S, pair):
