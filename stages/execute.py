@@ -1281,6 +1281,62 @@ def _principal_frame(com_O, inertia_O) -> tuple[np.ndarray, np.ndarray]:
 # Simulation
 
 
+def _checked_inputs(mass, com_O, inertia_O, X_WO_goal, params: Params, frames: int):
+    """:func:`simulate`'s object and parameters checked (:class:`InputError` else): ``(com_O (3,),
+    inertia_O (3, 3), X_WO_goal (4, 4))`` as float arrays."""
+    com_O = np.asarray(com_O, dtype=float).reshape(3)
+    inertia_O = np.asarray(inertia_O, dtype=float).reshape(3, 3)
+    X_WO_goal = np.asarray(X_WO_goal, dtype=float)
+    if not (np.isfinite(mass) and mass > 0):
+        raise InputError(f"simulate: mass must be positive, got {mass}")
+    if X_WO_goal.shape != (4, 4) or not np.all(np.isfinite(X_WO_goal)):
+        raise InputError("simulate: X_WO_goal must be a finite (4, 4) pose")
+    if np.linalg.eigvalsh(0.5 * (inertia_O + inertia_O.T)).min() <= 0:
+        raise InputError("simulate: inertia_O must be positive definite")
+    if params.ball_orientation not in ("plan", "object") or params.task not in ("position", "pose") \
+            or (params.ball_orientation == "object" and params.task != "pose") or not params.dt > 0 or frames < 0:
+        raise InputError(f"simulate: invalid parameters (ball_orientation {params.ball_orientation!r} needs task "
+                         f"'pose', task {params.task!r}, dt {params.dt}, frames {frames})")
+    if params.seed < 0:
+        raise InputError(f"simulate: seed must be >= 0 (0: the nominal physics), got {params.seed}")
+    return com_O, inertia_O, X_WO_goal
+
+
+class _Body(NamedTuple):
+    """The object as physics simulates it (:func:`_perturbed_body`): friction ``mu``, ``mass`` (kg),
+    its principal frame ``X_OP`` (4, 4; origin at the true CoM) and moments ``lam`` (3,) kg m^2,
+    the initial offset ``d_pose`` (3,) m (W) and what a seed drew (``perturbation``)."""
+
+    mu: float
+    mass: float
+    X_OP: np.ndarray
+    lam: np.ndarray
+    d_pose: np.ndarray
+    perturbation: dict
+
+
+def _perturbed_body(mu: float, mass: float, com_O, inertia_O, params: Params) -> _Body:
+    """The body's principal frame (:func:`_principal_frame`), and with ``params.seed`` > 0 the
+    seeded perturbations: friction, CoM, inertia and mass (the inertia scales with it: same shape,
+    uniform density) and the initial position, each uniform within its jitter."""
+    rng = np.random.default_rng(params.seed)
+    X_OP, lam = _principal_frame(com_O, inertia_O)
+    d_pose = np.zeros(3)
+    if params.seed <= 0:
+        return _Body(mu, mass, X_OP, lam, d_pose, {})
+    f_mu = rng.uniform(1 - params.friction_jitter, 1 + params.friction_jitter)
+    d_com = rng.uniform(-params.com_jitter, params.com_jitter, 3)
+    f_lam = rng.uniform(1 - params.inertia_jitter, 1 + params.inertia_jitter, 3)
+    # Drawn last, so that a seed's other perturbations are the ones it drew before mass was jittered.
+    f_m = rng.uniform(1 - params.mass_jitter, 1 + params.mass_jitter)
+    X_OP = se3.make_transform(X_OP[:3, :3], com_O + d_com)
+    d_pose[:2] = rng.uniform(-params.pose_jitter, params.pose_jitter, 2)
+    perturbation = {"friction_factor": float(f_mu), "com_offset": d_com.tolist(),
+                    "inertia_factors": f_lam.tolist(), "mass_factor": float(f_m),
+                    "initial_offset": d_pose[:2].tolist()}
+    return _Body(mu * f_mu, mass * f_m, X_OP, lam * f_lam * f_m, d_pose, perturbation)
+
+
 def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, params: Params = Params(),
              gui: bool = False, frames: int = 0) -> Execution:
     """Run a trajectory table in PyBullet and measure how the object really moved (paper §6).
@@ -1327,21 +1383,7 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     ``duration`` (s).
     """
     wall0 = time.perf_counter()
-    com_O = np.asarray(com_O, dtype=float).reshape(3)
-    inertia_O = np.asarray(inertia_O, dtype=float).reshape(3, 3)
-    X_WO_goal = np.asarray(X_WO_goal, dtype=float)
-    if not (np.isfinite(mass) and mass > 0):
-        raise InputError(f"simulate: mass must be positive, got {mass}")
-    if X_WO_goal.shape != (4, 4) or not np.all(np.isfinite(X_WO_goal)):
-        raise InputError("simulate: X_WO_goal must be a finite (4, 4) pose")
-    if np.linalg.eigvalsh(0.5 * (inertia_O + inertia_O.T)).min() <= 0:
-        raise InputError("simulate: inertia_O must be positive definite")
-    if params.ball_orientation not in ("plan", "object") or params.task not in ("position", "pose") \
-            or (params.ball_orientation == "object" and params.task != "pose") or not params.dt > 0 or frames < 0:
-        raise InputError(f"simulate: invalid parameters (ball_orientation {params.ball_orientation!r} needs task "
-                         f"'pose', task {params.task!r}, dt {params.dt}, frames {frames})")
-    if params.seed < 0:
-        raise InputError(f"simulate: seed must be >= 0 (0: the nominal physics), got {params.seed}")
+    com_O, inertia_O, X_WO_goal = _checked_inputs(mass, com_O, inertia_O, X_WO_goal, params, frames)
     robot = load_robot(scene.robot.urdf_path, scene.base_transform(), tuple(scene.robot.eef_links))
     arms = (robot.arm("left"), robot.arm("right"))
     plan = check_trajectory(traj, params.dt, arms[0].dof)
@@ -1355,28 +1397,8 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     parts, parts_path, cache_hit = convex_parts(shape.mesh, params.cache_dir)
     t_dec = time.perf_counter() - t_dec
 
-    # Perturbations (seeded) and the body's principal frame.
-    rng = np.random.default_rng(params.seed)
-    mu = float(scene.object.friction)
-    com_true = com_O.copy()
-    X_OP, lam = _principal_frame(com_O, inertia_O)
-    perturbation: dict = {}
-    d_pose = np.zeros(3)
-    if params.seed > 0:
-        f_mu = rng.uniform(1 - params.friction_jitter, 1 + params.friction_jitter)
-        d_com = rng.uniform(-params.com_jitter, params.com_jitter, 3)
-        f_lam = rng.uniform(1 - params.inertia_jitter, 1 + params.inertia_jitter, 3)
-        # Drawn last, so that a seed's other perturbations are the ones it drew before mass was jittered.
-        f_m = rng.uniform(1 - params.mass_jitter, 1 + params.mass_jitter)
-        mu *= f_mu
-        com_true = com_O + d_com
-        lam = lam * f_lam * f_m  # the inertia scales with the mass (same shape, uniform density)
-        mass = mass * f_m
-        X_OP = se3.make_transform(X_OP[:3, :3], com_true)
-        d_pose[:2] = rng.uniform(-params.pose_jitter, params.pose_jitter, 2)
-        perturbation = {"friction_factor": float(f_mu), "com_offset": d_com.tolist(),
-                        "inertia_factors": f_lam.tolist(), "mass_factor": float(f_m),
-                        "initial_offset": d_pose[:2].tolist()}
+    mu, mass, X_OP, lam, d_pose, perturbation = _perturbed_body(float(scene.object.friction), mass, com_O,
+                                                                inertia_O, params)
     X_PO = se3.invert(X_OP)
 
     # Targets from the plan.
