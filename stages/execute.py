@@ -1337,6 +1337,100 @@ def _perturbed_body(mu: float, mass: float, com_O, inertia_O, params: Params) ->
     return _Body(mu * f_mu, mass * f_m, X_OP, lam * f_lam * f_m, d_pose, perturbation)
 
 
+def _load_table(cid: int, scene, params: Params) -> tuple[int, dict]:
+    """A fresh PyBullet world (fixed step ``params.dt``, deterministic pairs, gravity) with the
+    scene's table (its top at z = 0) and obstacles: ``(table id, obstacle id -> name)``."""
+    p.resetSimulation(physicsClientId=cid)
+    p.setPhysicsEngineParameter(fixedTimeStep=params.dt, numSolverIterations=params.solver_iterations,
+                                deterministicOverlappingPairs=1, physicsClientId=cid)
+    p.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
+    sx, sy = scene.table.size
+    h = scene.table.height
+    table = _static_box(cid, (sx / 2, sy / 2, h / 2), se3.make_transform(np.eye(3), [0.0, 0.0, -h / 2]),
+                        [0.8, 0.75, 0.65, 1.0], 1.0)
+    return table, {_add_obstacle(cid, g, 1.0): g.name for g in scene.obstacle_geometries()}
+
+
+class _RobotBody(NamedTuple):
+    """The robot in PyBullet (:func:`_load_robot`): its body id, link names by index, the movable
+    joints, each arm's columns among them, joint effort limits ``(2, n)`` (N m; inf when not
+    clipped), the balls' link ids and their centres in the links' inertial frames, every arm joint."""
+
+    body: int
+    link_name: dict
+    movable: list
+    arm_cols: list
+    effort: np.ndarray
+    balls: list
+    ball_local: list
+    all_arm: list
+
+
+def _load_robot(cid: int, scene, robot, arms, q0: np.ndarray, params: Params) -> _RobotBody:
+    """The scene's URDF on its base (fixed, exact cylinders), the arms at ``q0 (2, n)`` and torque
+    controlled (velocity motors off), the torso held at its angle by a position motor."""
+    X_WB = scene.base_transform()
+    body = p.loadURDF(str(scene.robot.urdf_path), X_WB[:3, 3].tolist(), _quat(X_WB[:3, :3]), useFixedBase=True,
+                      flags=p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER, physicsClientId=cid)
+    info = [p.getJointInfo(body, j, physicsClientId=cid) for j in range(p.getNumJoints(body, physicsClientId=cid))]
+    joint_index = {i[1].decode(): i[0] for i in info}
+    link_index = {i[12].decode(): i[0] for i in info}
+    link_name = {i[0]: i[12].decode() for i in info}
+    link_name[-1] = "base"
+    movable = [i[0] for i in info if i[2] != p.JOINT_FIXED]
+    col_of = {j: c for c, j in enumerate(movable)}
+    arm_joints = [[joint_index[n] for n in a.joint_names] for a in arms]
+    arm_cols = [np.array([col_of[j] for j in js]) for js in arm_joints]
+    others = [j for j in movable if j not in arm_joints[0] + arm_joints[1]]  # the torso
+    effort = np.array([[info[j][10] for j in js] for js in arm_joints])
+    effort = np.where(effort > 0, effort, np.inf) if params.clip_effort else np.full(effort.shape, np.inf)
+    balls = [link_index[n] for n in scene.robot.eef_links]
+    ball_local = []
+    for b in balls:  # calculateJacobian wants the point in the link's inertial frame
+        d = p.getDynamicsInfo(body, b, physicsClientId=cid)
+        R_LI = se3.matrix_from_quat(np.asarray(d[4]))
+        ball_local.append((-(R_LI.T @ np.asarray(d[3]))).tolist())
+    for j in range(-1, len(info)):
+        p.changeDynamics(body, j, lateralFriction=1.0, physicsClientId=cid)
+    for a in range(2):
+        for c, j in enumerate(arm_joints[a]):
+            p.resetJointState(body, j, float(q0[a, c]), 0.0, physicsClientId=cid)
+    for j in others:
+        p.resetJointState(body, j, robot.torso_angle, 0.0, physicsClientId=cid)
+        p.setJointMotorControl2(body, j, p.POSITION_CONTROL, targetPosition=robot.torso_angle,
+                                force=10.0 * max(info[j][10], 100.0), physicsClientId=cid)
+    all_arm = arm_joints[0] + arm_joints[1]
+    p.setJointMotorControlArray(body, all_arm, p.VELOCITY_CONTROL, forces=[0.0] * len(all_arm), physicsClientId=cid)
+    return _RobotBody(body, link_name, movable, arm_cols, effort, balls, ball_local, all_arm)
+
+
+def _load_object(cid: int, parts_path, visual_mesh, X_OP: np.ndarray, X_WO0: np.ndarray, d_pose: np.ndarray,
+                 mass: float, lam: np.ndarray, mu: float, params: Params) -> int:
+    """The object's body: base frame P at the (true) CoM with the principal axes ``X_OP``, the convex
+    parts of ``parts_path`` as its collision shape, at ``X_WO0`` shifted by ``d_pose`` (m, W), with its
+    mass, principal moments ``lam`` and friction ``mu``, never asleep; drawn with ``visual_mesh`` (the
+    collision mesh: PyBullet refuses a visual shape of a 200k-triangle mesh) when not None."""
+    X_PO = se3.invert(X_OP)
+    col = p.createCollisionShape(p.GEOM_MESH, fileName=str(parts_path), collisionFramePosition=X_PO[:3, 3].tolist(),
+                                 collisionFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
+    vis = -1
+    if visual_mesh is not None:
+        vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(visual_mesh.vertices).tolist(),
+                                  indices=np.asarray(visual_mesh.faces).ravel().tolist(),
+                                  rgbaColor=[0.2, 0.45, 0.8, 1.0],
+                                  visualFramePosition=X_PO[:3, 3].tolist(),
+                                  visualFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
+    X_WP0 = X_WO0 @ X_OP
+    X_WP0[:3, 3] += d_pose
+    obj = p.createMultiBody(mass, col, vis, basePosition=X_WP0[:3, 3].tolist(),
+                            baseOrientation=_quat(X_WP0[:3, :3]), physicsClientId=cid)
+    p.changeDynamics(obj, -1, mass=mass, localInertiaDiagonal=lam.tolist(), lateralFriction=mu,
+                     spinningFriction=0.0, rollingFriction=0.0, frictionAnchor=1, restitution=0.0,
+                     linearDamping=0.0, angularDamping=0.0, collisionMargin=params.object_margin,
+                     activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+    return obj
+
+
 def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, params: Params = Params(),
              gui: bool = False, frames: int = 0) -> Execution:
     """Run a trajectory table in PyBullet and measure how the object really moved (paper §6).
@@ -1422,70 +1516,11 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     saturated_steps = 0
 
     with _connect(gui) as cid:
-        p.resetSimulation(physicsClientId=cid)
-        p.setPhysicsEngineParameter(fixedTimeStep=params.dt, numSolverIterations=params.solver_iterations,
-                                    deterministicOverlappingPairs=1, physicsClientId=cid)
-        p.setGravity(0.0, 0.0, -9.81, physicsClientId=cid)
-
-        sx, sy = scene.table.size
-        h = scene.table.height
-        table = _static_box(cid, (sx / 2, sy / 2, h / 2), se3.make_transform(np.eye(3), [0.0, 0.0, -h / 2]),
-                            [0.8, 0.75, 0.65, 1.0], 1.0)
-        obstacles = {_add_obstacle(cid, g, 1.0): g.name for g in scene.obstacle_geometries()}
-
-        X_WB = scene.base_transform()
-        body = p.loadURDF(str(scene.robot.urdf_path), X_WB[:3, 3].tolist(), _quat(X_WB[:3, :3]), useFixedBase=True,
-                          flags=p.URDF_USE_INERTIA_FROM_FILE | p.URDF_USE_IMPLICIT_CYLINDER, physicsClientId=cid)
-        info = [p.getJointInfo(body, j, physicsClientId=cid) for j in range(p.getNumJoints(body, physicsClientId=cid))]
-        joint_index = {i[1].decode(): i[0] for i in info}
-        link_index = {i[12].decode(): i[0] for i in info}
-        link_name = {i[0]: i[12].decode() for i in info}
-        link_name[-1] = "base"
-        movable = [i[0] for i in info if i[2] != p.JOINT_FIXED]
-        col_of = {j: c for c, j in enumerate(movable)}
-        arm_joints = [[joint_index[n] for n in a.joint_names] for a in arms]
-        arm_cols = [np.array([col_of[j] for j in js]) for js in arm_joints]
-        others = [j for j in movable if j not in arm_joints[0] + arm_joints[1]]  # the torso
-        effort = np.array([[info[j][10] for j in js] for js in arm_joints])
-        effort = np.where(effort > 0, effort, np.inf) if params.clip_effort else np.full(effort.shape, np.inf)
-        balls = [link_index[n] for n in scene.robot.eef_links]
-        ball_local = []
-        for b in balls:  # calculateJacobian wants the point in the link's inertial frame
-            d = p.getDynamicsInfo(body, b, physicsClientId=cid)
-            R_LI = se3.matrix_from_quat(np.asarray(d[4]))
-            ball_local.append((-(R_LI.T @ np.asarray(d[3]))).tolist())
-        for j in range(-1, len(info)):
-            p.changeDynamics(body, j, lateralFriction=1.0, physicsClientId=cid)
-        for a in range(2):
-            for c, j in enumerate(arm_joints[a]):
-                p.resetJointState(body, j, float(plan.q[0, a, c]), 0.0, physicsClientId=cid)
-        for j in others:
-            p.resetJointState(body, j, robot.torso_angle, 0.0, physicsClientId=cid)
-            p.setJointMotorControl2(body, j, p.POSITION_CONTROL, targetPosition=robot.torso_angle,
-                                    force=10.0 * max(info[j][10], 100.0), physicsClientId=cid)
-        all_arm = arm_joints[0] + arm_joints[1]
-        p.setJointMotorControlArray(body, all_arm, p.VELOCITY_CONTROL, forces=[0.0] * len(all_arm),
-                                    physicsClientId=cid)
-
-        # The object: base frame P at the (true) CoM with the principal axes.
-        col = p.createCollisionShape(p.GEOM_MESH, fileName=str(parts_path), collisionFramePosition=X_PO[:3, 3].tolist(),
-                                     collisionFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
-        vis = -1
-        if frames > 0 or gui:
-            # The collision mesh: PyBullet refuses a visual shape of a 200k-triangle mesh.
-            vis = p.createVisualShape(p.GEOM_MESH, vertices=np.asarray(shape.mesh.vertices).tolist(),
-                                      indices=np.asarray(shape.mesh.faces).ravel().tolist(),
-                                      rgbaColor=[0.2, 0.45, 0.8, 1.0],
-                                      visualFramePosition=X_PO[:3, 3].tolist(),
-                                      visualFrameOrientation=_quat(X_PO[:3, :3]), physicsClientId=cid)
-        X_WP0 = plan.X_WO[0] @ X_OP
-        X_WP0[:3, 3] += d_pose
-        obj = p.createMultiBody(mass, col, vis, basePosition=X_WP0[:3, 3].tolist(),
-                                baseOrientation=_quat(X_WP0[:3, :3]), physicsClientId=cid)
-        p.changeDynamics(obj, -1, mass=mass, localInertiaDiagonal=lam.tolist(), lateralFriction=mu,
-                         spinningFriction=0.0, rollingFriction=0.0, frictionAnchor=1, restitution=0.0,
-                         linearDamping=0.0, angularDamping=0.0, collisionMargin=params.object_margin,
-                         activationState=p.ACTIVATION_STATE_DISABLE_SLEEPING, physicsClientId=cid)
+        table, obstacles = _load_table(cid, scene, params)
+        body, link_name, movable, arm_cols, effort, balls, ball_local, all_arm = _load_robot(cid, scene, robot, arms,
+                                                                                             plan.q[0], params)
+        obj = _load_object(cid, parts_path, shape.mesh if frames > 0 or gui else None, X_OP, plan.X_WO[0], d_pose,
+                           mass, lam, mu, params)
         camera = scene_camera(scene, plan.X_WO[0], X_WO_goal, com_O)
         if frames > 0 or gui:  # the goal's footprint, drawn only: no collision shape, no mass
             _add_goal_footprint(mesh, X_WO_goal, cid)
