@@ -1431,6 +1431,79 @@ def _load_object(cid: int, parts_path, visual_mesh, X_OP: np.ndarray, X_WO0: np.
     return obj
 
 
+class _Recorder:
+    """What :func:`simulate` records of the PyBullet world: per plan row (``sample``) the object's pose,
+    the balls' and the table's contact forces, the deepest penetration, the balls' centres, the arms'
+    joints and, on ``frames`` rows spread evenly, a rendered image (``render()``); per step
+    (``contacts``) each collision pair of the robot with the object (links other than the balls), the
+    table and the obstacles, and of the object with the obstacles, with the time of its first contact."""
+
+    def __init__(self, T: int, n_arm: int, frames: int, cid: int, body: int, obj: int, table: int, obstacles: dict,
+                 balls: list, arm_cols: list, link_name: dict, render):
+        self.raw = {"pos_P": np.zeros((T, 3)), "quat_P": np.zeros((T, 4)), "ball": np.zeros((T, 2, 3)),
+                    "q": np.zeros((T, 2, n_arm)), "f_ball": np.zeros((T, 2)), "touch": np.zeros((T, 2), dtype=bool),
+                    "f_table": np.zeros(T), "pen": np.zeros(T), "sat": np.zeros(T, dtype=bool)}
+        self.collisions = {"robot_table": set(), "robot_obstacle": set(), "robot_object": set(),
+                           "object_obstacle": set()}
+        self.first_hit: dict[str, float] = {}  # "kind:name" -> time (s) of the first contact
+        self.images: list[np.ndarray] = []
+        self.frame_rows = set(np.round(np.linspace(0, T - 1, frames)).astype(int).tolist()) if frames > 0 else set()
+        self.cid, self.body, self.obj, self.table, self.obstacles = cid, body, obj, table, obstacles
+        self.balls, self.arm_cols, self.link_name, self.render = balls, arm_cols, link_name, render
+
+    def sample(self, r: int, states) -> None:
+        """Row ``r``'s record, ``states`` the joint states after its step."""
+        raw, cid, obj, body, balls = self.raw, self.cid, self.obj, self.body, self.balls
+        pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
+        raw["pos_P"][r], raw["quat_P"][r] = pos, orn
+        f_table, pen = 0.0, 0.0
+        f_vec = np.zeros((2, 3))
+        for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
+            pen = max(pen, -c[8])
+            if c[2] == body and c[4] in balls:
+                a = balls.index(c[4])
+                f_vec[a] += _contact_force(c)
+                raw["touch"][r, a] = True
+            elif c[2] == self.table:
+                f_table += c[9]
+        raw["f_ball"][r] = np.linalg.norm(f_vec, axis=1)
+        raw["f_table"][r], raw["pen"][r] = f_table, pen
+        ls = p.getLinkStates(body, balls, computeForwardKinematics=1, physicsClientId=cid)
+        raw["ball"][r] = [ls[0][4], ls[1][4]]
+        q_now = np.array([s[0] for s in states])
+        raw["q"][r] = [q_now[self.arm_cols[0]], q_now[self.arm_cols[1]]]
+        if r in self.frame_rows:
+            self.images.append(self.render())
+
+    def contacts(self, t_now: float) -> list[float]:
+        """Record the collisions of this step (at ``t_now`` s); returns each ball's force on the object (N)."""
+        collisions, first_hit, link_name, obstacles = self.collisions, self.first_hit, self.link_name, self.obstacles
+
+        def hit(kind: str, name: str) -> None:
+            if name not in collisions[kind]:
+                collisions[kind].add(name)
+                first_hit.setdefault(f"{kind}:{name}", t_now)
+
+        f_vec = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+        for c in p.getContactPoints(bodyA=self.body, physicsClientId=self.cid):
+            other = c[2]
+            if other == self.obj:
+                if c[3] not in self.balls:
+                    hit("robot_object", link_name.get(c[3], str(c[3])))
+                else:
+                    fa, fc = f_vec[self.balls.index(c[3])], _contact_force(c)
+                    fa[0], fa[1], fa[2] = fa[0] + fc[0], fa[1] + fc[1], fa[2] + fc[2]
+            elif other == self.table:
+                hit("robot_table", link_name.get(c[3], str(c[3])))
+            elif other in obstacles:
+                hit("robot_obstacle", f"{link_name.get(c[3], str(c[3]))}/{obstacles[other]}")
+        if obstacles:
+            for c in p.getContactPoints(bodyA=self.obj, physicsClientId=self.cid):
+                if c[2] in obstacles:
+                    hit("object_obstacle", obstacles[c[2]])
+        return [math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) for f in f_vec]
+
+
 def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, params: Params = Params(),
              gui: bool = False, frames: int = 0) -> Execution:
     """Run a trajectory table in PyBullet and measure how the object really moved (paper §6).
@@ -1505,13 +1578,6 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
     T, k = len(plan.t), plan.substeps
     S = (T - 1) * k + 1
     n_arm = arms[0].dof
-    raw = {"pos_P": np.zeros((T, 3)), "quat_P": np.zeros((T, 4)), "ball": np.zeros((T, 2, 3)),
-           "q": np.zeros((T, 2, n_arm)), "f_ball": np.zeros((T, 2)), "touch": np.zeros((T, 2), dtype=bool),
-           "f_table": np.zeros(T), "pen": np.zeros(T), "sat": np.zeros(T, dtype=bool)}
-    collisions = {"robot_table": set(), "robot_obstacle": set(), "robot_object": set(), "object_obstacle": set()}
-    first_hit: dict[str, float] = {}  # "kind:name" -> time (s) of the first contact
-    images: list[np.ndarray] = []
-    frame_rows = set(np.round(np.linspace(0, T - 1, frames)).astype(int).tolist()) if frames > 0 else set()
     quat_tgt = se3.quat_from_matrix(tg.R).tolist()  # (S, 2, 4) nested lists: fast scalar access
     saturated_steps = 0
 
@@ -1534,53 +1600,10 @@ def simulate(scene, mesh_path, mass: float, com_O, inertia_O, traj, X_WO_goal, p
         model_period = max(int(params.model_period), 1)
         n_mov = len(movable)
 
-        def sample(r: int, states) -> None:
-            pos, orn = p.getBasePositionAndOrientation(obj, physicsClientId=cid)
-            raw["pos_P"][r], raw["quat_P"][r] = pos, orn
-            f_table, pen = 0.0, 0.0
-            f_vec = np.zeros((2, 3))
-            for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
-                pen = max(pen, -c[8])
-                if c[2] == body and c[4] in balls:
-                    a = balls.index(c[4])
-                    f_vec[a] += _contact_force(c)
-                    raw["touch"][r, a] = True
-                elif c[2] == table:
-                    f_table += c[9]
-            raw["f_ball"][r] = np.linalg.norm(f_vec, axis=1)
-            raw["f_table"][r], raw["pen"][r] = f_table, pen
-            ls = p.getLinkStates(body, balls, computeForwardKinematics=1, physicsClientId=cid)
-            raw["ball"][r] = [ls[0][4], ls[1][4]]
-            q_now = np.array([s[0] for s in states])
-            raw["q"][r] = [q_now[arm_cols[0]], q_now[arm_cols[1]]]
-            if r in frame_rows:
-                images.append(_render(cid, params, camera))
-
-        def check_collisions(t_now: float) -> list[float]:
-            """Record the collisions of this step; returns each ball's force on the object (N)."""
-            def hit(kind: str, name: str) -> None:
-                if name not in collisions[kind]:
-                    collisions[kind].add(name)
-                    first_hit.setdefault(f"{kind}:{name}", t_now)
-
-            f_vec = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
-            for c in p.getContactPoints(bodyA=body, physicsClientId=cid):
-                other = c[2]
-                if other == obj:
-                    if c[3] not in balls:
-                        hit("robot_object", link_name.get(c[3], str(c[3])))
-                    else:
-                        fa, fc = f_vec[balls.index(c[3])], _contact_force(c)
-                        fa[0], fa[1], fa[2] = fa[0] + fc[0], fa[1] + fc[1], fa[2] + fc[2]
-                elif other == table:
-                    hit("robot_table", link_name.get(c[3], str(c[3])))
-                elif other in obstacles:
-                    hit("robot_obstacle", f"{link_name.get(c[3], str(c[3]))}/{obstacles[other]}")
-            if obstacles:
-                for c in p.getContactPoints(bodyA=obj, physicsClientId=cid):
-                    if c[2] in obstacles:
-                        hit("object_obstacle", obstacles[c[2]])
-            return [math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) for f in f_vec]
+        rec = _Recorder(T, n_arm, frames, cid, body, obj, table, obstacles, balls, arm_cols, link_name,
+                        lambda: _render(cid, params, camera))
+        raw, collisions, first_hit, images = rec.raw, rec.collisions, rec.first_hit, rec.images
+        sample, check_collisions = rec.sample, rec.contacts
 
         t_loop, c_loop = time.perf_counter(), time.process_time()
         states = p.getJointStates(body, movable, physicsClientId=cid)
