@@ -1711,9 +1711,8 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     if not len(c):
         return k, c
     a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
-    separated, start_in = _hull_separated(msh.planes, a, b, rc, msh.few)
-    c, k, a, b, rc, start_in = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated], \
-        start_in[~separated]
+    separated = _hull_separated(msh.planes if msh.few is None else msh.planes[msh.few], a, b, rc)[0]
+    c, k, a, b, rc = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated]
     # Exact early accept: a capsule that reaches a sphere inside the solid. Only capsules below a row's
     # lowest accepted one need python-fcl (each row reports its lowest colliding capsule).
     accept = _reaches_inner(msh.inner, a, b, rc)
@@ -1721,8 +1720,10 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     np.minimum.at(lowest, k[accept], c[accept])
     hit = accept & (c == lowest[k])
     tested = _fcl_hits(msh, a, b, rc, c, k, c < lowest[k], hit, X_OW.shape[0])
-    # Wholly inside: no triangle contact, yet the segment start is inside the mesh.
-    inside = tested & ~hit & start_in
+    # Wholly inside: no triangle contact, yet the segment start is inside the mesh (first its hull).
+    inside = tested & ~hit
+    if inside.any():
+        inside[inside] = _hull_separated(msh.planes, a[:, inside], a[:, inside], np.zeros(inside.sum()))[1]
     if inside.any() and not msh.convex:
         # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
         # surface: a simplification that moved no surface by more than rc answers alike, faster.
