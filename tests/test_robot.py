@@ -1,5 +1,6 @@
 """Robot model: the SDA5F URDF against the fact sheet and PyBullet, batched FK/IK, collision checks."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -573,28 +574,46 @@ def test_inner_spheres_lie_inside_the_solid():
     assert len(rb._make_mesh(opened, "open L prism").inner) == 0
 
 
-def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl():
-    """The hull filters (bounding sphere, Cyrus-Beck clipping), the inner spheres' early accept and the
-    early exit per row only skip work: each colliding row is reported once, with the first colliding
-    capsule that a plain fcl test of all pairs finds."""
-    import fcl
-
+def _fine_meshes():
     from tests.conftest import l_prism
 
-    mesh = l_prism()
-    msh = rb._make_mesh(mesh, "L prism")
+    return {"L prism": l_prism, "icosphere": lambda: trimesh.creation.icosphere(subdivisions=3, radius=0.2),
+            "torus": lambda: trimesh.creation.torus(0.2, 0.07)}
+
+
+@pytest.mark.parametrize("name", ["L prism", "icosphere", "torus"])
+def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl(name):
+    """The hull filters (bounding sphere, Cyrus-Beck clipping by the spread planes), the inner spheres'
+    early accept and the early exit per row only skip work: each colliding row is reported once, with
+    the first colliding capsule that a plain fcl test of all pairs finds; capsules wholly inside count.
+    On a few-faced hull (the L prism), a fine convex one (the icosphere's 1,280 planes, of which
+    ``_spread_planes`` keeps under 96) and a fine non-convex one (the torus, its hole inside the hull)."""
+    import fcl
+
+    mesh = _fine_meshes()[name]()
+    msh = rb._make_mesh(mesh, name)
     rng = np.random.default_rng(3)
-    C, m = 5, 60
+    C, m = 5, 60 if name == "L prism" else 200
     centre = mesh.bounds.mean(axis=0)
     A = centre[:, None, None] + rng.uniform(-0.35, 0.35, (3, C, m))
     u = rng.normal(0.0, 1.0, (3, C, m))
-    B = A + u / np.linalg.norm(u, axis=0) * rng.uniform(0.02, 0.2, C)[:, None]  # a capsule keeps its length
+    length = np.r_[0.002, rng.uniform(0.02, 0.2, C - 1)]
+    B = A + u / np.linalg.norm(u, axis=0) * length[:, None]  # a capsule keeps its length
     radius = rng.uniform(0.005, 0.04, C)
+    # Rows whose first capsule (2 mm long) lies wholly inside, 5 mm from the surface at least: no
+    # triangle contact; without the inner spheres' early accept, found by the inside test alone.
+    deep = trimesh.sample.volume_mesh(mesh, 4000)
+    deep = deep[trimesh.proximity.signed_distance(mesh, deep) > radius[0] + 0.005][:10]
+    assert len(deep) >= 5
+    B[:, 0, :len(deep)] += deep.T - A[:, 0, :len(deep)]
+    A[:, 0, :len(deep)] = deep.T
     X_OW = np.broadcast_to(np.eye(4), (m, 4, 4))
     test = rng.random((C, m)) < 0.9
     k, c = rb._mesh_hits(msh, X_OW, A, B, radius, 0.0, test)
     assert len(np.unique(k)) == len(k)
     got = dict(zip(k.tolist(), c.tolist(), strict=True))
+    k0, c0 = rb._mesh_hits(dataclasses.replace(msh, inner=np.zeros((0, 4))), X_OW, A, B, radius, 0.0, test)
+    assert dict(zip(k0.tolist(), c0.tolist(), strict=True)) == got
     assert rb._reaches_inner(msh.inner, A[:, c, k], B[:, c, k], radius[c]).any()
     want = {}
     for ci in range(C):
@@ -609,6 +628,7 @@ def test_mesh_hits_finds_each_rows_lowest_colliding_capsule_as_brute_force_fcl()
             if hit and ki not in want:
                 want[int(ki)] = ci
     assert 5 < len(want) < m  # the sample mixes free and colliding rows
+    assert all(want.get(k) == 0 for k in np.flatnonzero(test[0, :len(deep)]).tolist())
     assert got == want
 
 
