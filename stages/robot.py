@@ -670,6 +670,44 @@ def _dls(a: Arm, p_T: np.ndarray, q0: np.ndarray, tol: float, prm: IKParams):
     return q.T.copy(), err
 
 
+def ik_pose(robot: Robot, arm: str, p_t: np.ndarray, R_t: np.ndarray, q0: np.ndarray, iters: int = 30):
+    """Joints ``(T, n)`` putting the ball centre of ``arm`` on ``p_t (T, 3)`` and, in the null space of
+    that, turning the ball towards ``R_t (T, 3, 3)`` (W): task-priority IK (Siciliano and Slotine's
+    two-task scheme: damped least squares on the position, the orientation error as a rotation
+    vector solved in the position task's null space), ``iters`` steps from ``q0 (T, n)``, each capped
+    at 0.2 rad per joint, joint limits by clamping. A ball is a sphere, so its orientation is free:
+    ``stages.trajectory`` uses it to turn a stick off the object with the contact kept. Also returns
+    the position errors ``(T,)`` (m): near a singular posture or a clamped joint the position task can
+    be lost (a quarter of random postures asked for a 15 deg turn), so callers keep only rows within
+    their tolerance."""
+    a = robot.arm(arm)
+    q = np.clip(np.array(q0, dtype=float), a.lower, a.upper)
+    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
+    lam2 = 1e-6
+    n = a.dof
+    for _ in range(iters):
+        F = robot.fk(arm, q)
+        p, R = F[:, a.eef_index, :3, 3], F[:, a.eef_index, :3, :3]
+        w = np.einsum("tkij,kj->tki", F[:, moving, :3, :3], a.axis[moving])  # (T, m, 3) world joint axes
+        Jw = np.zeros((len(q), 3, n))
+        Jw[:, :, a.joint[moving]] = np.swapaxes(w, 1, 2)
+        Jp = np.zeros((len(q), 3, n))
+        Jp[:, :, a.joint[moving]] = np.swapaxes(np.cross(w, p[:, None] - F[:, moving][:, :, :3, 3]), 1, 2)
+        e_p = p_t - p
+        e_r = Rotation.from_matrix(R_t @ np.swapaxes(R, 1, 2)).as_rotvec()
+        Jp_pinv = np.swapaxes(Jp, 1, 2) @ np.linalg.inv(Jp @ np.swapaxes(Jp, 1, 2) + lam2 * np.eye(3))
+        dq1 = (Jp_pinv @ e_p[:, :, None])[:, :, 0]
+        N = np.eye(n) - Jp_pinv @ Jp
+        JrN = Jw @ N
+        rhs = e_r - (Jw @ dq1[:, :, None])[:, :, 0]
+        y = np.linalg.solve(JrN @ np.swapaxes(JrN, 1, 2) + 1e-4 * np.eye(3), rhs[:, :, None])
+        dq = dq1 + (N @ np.swapaxes(JrN, 1, 2) @ y)[:, :, 0]
+        dq *= np.minimum(1.0, 0.2 / np.maximum(np.abs(dq).max(axis=1), 1e-12))[:, None]
+        q = np.clip(q + dq, a.lower, a.upper)
+    err = np.linalg.norm(p_t - robot.eef_position(arm, q), axis=1)
+    return q, err
+
+
 def follow_ik(robot: Robot, arm: str, targets: np.ndarray, X_WO: np.ndarray, keys: np.ndarray, n_O: np.ndarray,
               q0: np.ndarray, iters: int = 12, tol: float = 1e-3, max_jump: float = 0.5,
               both: bool = False) -> IKResult:

@@ -118,7 +118,7 @@ from stages.graph import Params as GraphParams
 from stages.graph import push_limits, pusher_motion, recorded_params, release_angle, spread, tip_angle
 from stages.objectmodel import load_object_model
 from stages.poses import Roll, roll_segments
-from stages.robot import follow_ik, load_robot
+from stages.robot import follow_ik, ik_pose, load_robot
 from stages.rolling import rolling_shift
 from stages.sample import clearance_of, make_scene_collision_fn
 from stages.scene import load_scene
@@ -330,38 +330,6 @@ def tool_clearance(robot, arm: str, q: np.ndarray, X_WO: np.ndarray, mesh, sampl
     return d[rows, k], P[rows, k], g
 
 
-def _ik_pose(robot, arm: str, p_t: np.ndarray, R_t: np.ndarray, q0: np.ndarray, iters: int = 30):
-    """Joints ``(T, n)`` putting the ball centre on ``p_t (T, 3)`` and, in the null space of that,
-    turning the ball towards ``R_t (T, 3, 3)`` (W); damped least squares from ``q0 (T, n)``, joint
-    limits by clamping. Also returns the position errors ``(T,)`` (m)."""
-    a = robot.arm(arm)
-    q = np.clip(np.array(q0, dtype=float), a.lower, a.upper)
-    moving = np.flatnonzero(a.joint[: a.eef_index + 1] >= 0)
-    lam2 = 1e-6
-    n = a.dof
-    for _ in range(iters):
-        F = robot.fk(arm, q)
-        p, R = F[:, a.eef_index, :3, 3], F[:, a.eef_index, :3, :3]
-        w = np.einsum("tkij,kj->tki", F[:, moving, :3, :3], a.axis[moving])  # (T, m, 3) world joint axes
-        Jw = np.zeros((len(q), 3, n))
-        Jw[:, :, a.joint[moving]] = np.swapaxes(w, 1, 2)
-        Jp = np.zeros((len(q), 3, n))
-        Jp[:, :, a.joint[moving]] = np.swapaxes(np.cross(w, p[:, None] - F[:, moving][:, :, :3, 3]), 1, 2)
-        e_p = p_t - p
-        e_r = Rotation.from_matrix(R_t @ np.swapaxes(R, 1, 2)).as_rotvec()
-        Jp_pinv = np.swapaxes(Jp, 1, 2) @ np.linalg.inv(Jp @ np.swapaxes(Jp, 1, 2) + lam2 * np.eye(3))
-        dq1 = (Jp_pinv @ e_p[:, :, None])[:, :, 0]
-        N = np.eye(n) - Jp_pinv @ Jp
-        JrN = Jw @ N
-        rhs = e_r - (Jw @ dq1[:, :, None])[:, :, 0]
-        y = np.linalg.solve(JrN @ np.swapaxes(JrN, 1, 2) + 1e-4 * np.eye(3), rhs[:, :, None])
-        dq = dq1 + (N @ np.swapaxes(JrN, 1, 2) @ y)[:, :, 0]
-        dq *= np.minimum(1.0, 0.2 / np.maximum(np.abs(dq).max(axis=1), 1e-12))[:, None]
-        q = np.clip(q + dq, a.lower, a.upper)
-    err = np.linalg.norm(p_t - robot.eef_position(arm, q), axis=1)
-    return q, err
-
-
 def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
     """Turn each ball about its centre, around its contacts, until its tool clears the object by
     ``params.stick_clearance``; modifies ``rows["q_l"]``, ``rows["q_r"]`` in place.
@@ -375,7 +343,7 @@ def refine_stick_clearance(env, rows: dict, params: Params) -> list[dict]:
     target get a turn about the ball centre, about the axis that moves the tool's nearest point away
     from the object, by the deficit over that point's lever (at most ``stick_max_turn``), spread over
     the neighbouring rows with a minimum-jerk ramp so that it is zero where the stretch begins and
-    ends; the joints are solved again (:func:`_ik_pose`, the ball centre exactly where planned). The
+    ends; the joints are solved again (:func:`stages.robot.ik_pose`, the ball centre exactly where planned). The
     new joints are kept only when the ball stays within 1 mm of its planned centre, the joints stay
     below their speed limits and the scene's collision checker passes every row; the refinement is
     reported per stretch (arm, rows, clearance before and after, kept or why not).
@@ -415,7 +383,7 @@ def _turned_joints(robot, arm: str, q: np.ndarray, p_tool: np.ndarray, g: np.nda
     ball about the centre, about the axis that moves the tool's nearest point ``p_tool`` away along
     the clearance gradient ``g`` (W), by the deficit over that point's lever (at most
     ``stick_max_turn``), spread over ``ramp`` rows each side with a minimum-jerk kernel and faded to
-    zero at the stretch's ends; the joints solved again (:func:`_ik_pose`, the centre kept).
+    zero at the stretch's ends; the joints solved again (:func:`stages.robot.ik_pose`, the centre kept).
     Returns ``(q_new (T, n), IK error (T,) m)``; rows that do not turn keep ``q``."""
     F = robot.fk(arm, q)
     i_eef = robot.arm(arm).eef_index
@@ -440,7 +408,7 @@ def _turned_joints(robot, arm: str, q: np.ndarray, p_tool: np.ndarray, g: np.nda
     edge = np.minimum(np.arange(len(q)), np.arange(len(q))[::-1]) / ramp
     spread *= _min_jerk_kernel(np.minimum(edge, 1.0))
     R_t = Rotation.from_rotvec(rv * spread[:, None]).as_matrix() @ R_ball
-    q_new, err = _ik_pose(robot, arm, c_ball, R_t, q)
+    q_new, err = ik_pose(robot, arm, c_ball, R_t, q)
     q_new[spread == 0.0] = q[spread == 0.0]
     return q_new, err
 
