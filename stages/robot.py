@@ -678,7 +678,7 @@ def ik_pose(robot: Robot, arm: str, p_t: np.ndarray, R_t: np.ndarray, q0: np.nda
     at 0.2 rad per joint, joint limits by clamping. A ball is a sphere, so its orientation is free:
     ``stages.trajectory`` uses it to turn a stick off the object with the contact kept. Also returns
     the position errors ``(T,)`` (m): near a singular posture or a clamped joint the position task can
-    be lost (a quarter of random postures asked for a 15 deg turn), so callers keep only rows within
+    be lost (17-25 % of random postures asked for a 15 deg turn), so callers keep only rows within
     their tolerance."""
     a = robot.arm(arm)
     q = np.clip(np.array(q0, dtype=float), a.lower, a.upper)
@@ -1151,7 +1151,7 @@ class _Mesh:
     coarse_tol: float  # ... points farther than this (m) from the surface; 0 when it is the mesh
     coarse_fcl: object  # fcl.CollisionObject of ``coarse`` (None when it is the mesh)
     inner: np.ndarray  # (S, 4) spheres (centre, radius) inside the solid: a capsule reaching one hits
-    few: np.ndarray  # (k,) ids of hull planes facing evenly spread directions, clipped with first
+    few: np.ndarray  # (k,) ids of hull planes facing evenly spread directions: _mesh_hits' pre-filter
 
 
 def _make_mesh(mesh, where: str) -> _Mesh:
@@ -1195,8 +1195,8 @@ def _fcl_mesh(vertices, faces):
 
 def _spread_planes(planes: np.ndarray, k: int = 96) -> np.ndarray:
     """Ids of the hull planes ``(F, 4)`` whose normals lie nearest ``k`` directions spread evenly over
-    the sphere (a Fibonacci lattice), sorted: a coarse polytope around the hull, :func:`_hull_separated`'s
-    first pass."""
+    the sphere (a Fibonacci lattice), sorted: a coarse polytope around the hull, :func:`_mesh_hits`'
+    separation filter."""
     i = np.arange(k) + 0.5
     z, phi = 1.0 - 2.0 * i / k, np.pi * (1.0 + 5.0 ** 0.5) * i
     u = np.stack([np.sqrt(1.0 - z * z) * np.cos(phi), np.sqrt(1.0 - z * z) * np.sin(phi), z], axis=1)
@@ -1722,15 +1722,16 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     each capsule inflated by ``margin`` (m; one for all, or ``(C,)``).
 
     Only ``test (C, m)`` pairs are examined. Numpy filters run before python-fcl: the mesh's bounding
-    box (in the mesh frame, grown by the capsule radius), then separation from its convex hull: the
-    capsule's segment, clipped by every hull face plane pushed out by the capsule radius
-    (Cyrus–Beck), is empty. A capsule that reaches one of the spheres inside the solid
+    box (in the mesh frame, grown by the capsule radius), then separation from a coarse polytope
+    around its convex hull (``_Mesh.few``, the hull planes facing spread directions: a capsule it
+    separates misses the hull): the capsule's segment, clipped by those planes pushed out by the
+    capsule radius (Cyrus–Beck), is empty. A capsule that reaches one of the spheres inside the solid
     (``_Mesh.inner``) collides, with no exact test. The rest, below a row's lowest such capsule, goes
     to ``fcl.collide`` (capsule inflated by the margin), capsule by capsule in index order; a row
     already hit by a lower capsule is not tested again; a fine mesh's simplification answers first
     where it can (:func:`_fcl_hits`). A capsule with no triangle contact can still lie wholly inside
-    the mesh, so one of its points is tested for inclusion (hull planes for a convex mesh, trimesh's
-    ray test otherwise). Returns one hit per colliding row, its lowest colliding capsule, as
+    the mesh, so one of its points is tested for inclusion (every hull plane first, which decides for a
+    convex mesh, then trimesh's ray test). Returns one hit per colliding row, its lowest colliding capsule, as
     ``(row, capsule)`` index arrays ordered by capsule then row.
     """
     # Every capsule in the mesh frame (R A + t per row, written out: einsum is slower here), then the
@@ -1749,7 +1750,7 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     if not len(c):
         return k, c
     a, b, rc = Ao[:, c, k], Bo[:, c, k], rr[c]
-    separated = _hull_separated(msh.planes if msh.few is None else msh.planes[msh.few], a, b, rc)[0]
+    separated = _hull_separated(msh.planes[msh.few], a, b, rc)[0]
     c, k, a, b, rc = c[~separated], k[~separated], a[:, ~separated], b[:, ~separated], rc[~separated]
     # Exact early accept: a capsule that reaches a sphere inside the solid. Only capsules below a row's
     # lowest accepted one need python-fcl (each row reports its lowest colliding capsule).
@@ -1820,21 +1821,14 @@ def _fcl_hits(msh: _Mesh, a: np.ndarray, b: np.ndarray, rc: np.ndarray, c: np.nd
     return tested
 
 
-def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray, few: np.ndarray | None = None,
+def _hull_separated(planes: np.ndarray, a: np.ndarray, b: np.ndarray, rc: np.ndarray,
                     chunk: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
-    """Cyrus–Beck clipping of segments ``a b (3, K)`` (mesh frame) by the hull's face planes
+    """Cyrus–Beck clipping of segments ``a b (3, K)`` (mesh frame) by the convex polytope's face planes
     ``planes (F, 4)`` (``n . x <= d``) pushed out by ``rc (K,)`` m: ``separated (K,)``, the clipped
-    segment is empty (the inflated capsule misses the hull), and ``start_in (K,)``, ``a`` lies inside
-    every plane (given where not separated). Columns in slices of about ``chunk // F``, so memory
-    stays bounded on fine hulls. With ``few`` (plane ids), the segments are clipped by those planes
-    first: one they empty is emptied by all (fewer half-spaces hold more), and only the others meet
-    every plane (the duck's hull has 1,000 faces)."""
+    segment is empty (the inflated capsule misses the polytope), and ``start_in (K,)``, ``a`` lies
+    inside every plane. Columns in slices of about ``chunk // F``, so memory stays bounded on fine
+    hulls. A subset of a hull's planes bounds a larger polytope: what it separates, the hull does."""
     K = a.shape[1]
-    if few is not None and len(few) < len(planes):
-        separated, start_in = np.ones(K, bool), np.zeros(K, bool)
-        rest = ~_hull_separated(planes[few], a, b, rc, chunk=chunk)[0]
-        separated[rest], start_in[rest] = _hull_separated(planes, a[:, rest], b[:, rest], rc[rest], chunk=chunk)
-        return separated, start_in
     n, d = planes[:, :3], planes[:, 3]
     separated, start_in = np.zeros(K, bool), np.zeros(K, bool)
     step = max(1, chunk // max(len(planes), 1))
