@@ -1762,7 +1762,7 @@ def _mesh_hits(msh: _Mesh, X_OW: np.ndarray, A: np.ndarray, B: np.ndarray, radiu
     # Wholly inside: no triangle contact, yet the segment start is inside the mesh (first its hull).
     inside = tested & ~hit
     if inside.any():
-        inside[inside] = _hull_separated(msh.planes, a[:, inside], a[:, inside], np.zeros(inside.sum()))[1]
+        inside[inside] = np.all(msh.planes[:, :3] @ a[:, inside] <= msh.planes[:, 3:], axis=0)
     if inside.any() and not msh.convex:
         # fcl found no triangle within rc of the capsule, so its start is farther than rc from the
         # surface: a simplification that moved no surface by more than rc answers alike, faster.
